@@ -1,0 +1,285 @@
+"""Online per-stream mapping of a device clock onto the host monotonic clock.
+
+Host arrival times are the device times mapped to the host plus a delay that is never negative:
+USB polling, Bluetooth connection intervals, Wi-Fi aggregation and FTDI latency timers only ever
+make bytes *late*. So the mapping is the **lower envelope** of the points
+``(device time, arrival - device time)``, not a least-squares line through them (which would be
+biased by the mean delay and thrown by every burst).
+
+How ``ClockSync`` fits it:
+
+* Per point it keeps only the lowest point of each ``bin_s`` bin (the least-delayed arrival),
+  for the last ``window_s`` seconds.
+* Every ``refit_s`` it takes the lower convex hull of those bin minima and chooses the hull edge
+  above the window's mean device time: the line that lies under every point and minimises the sum
+  of implied delays (the linear-programming optimum). Its slope is the drift.
+* Between refits, a point that lands *below* the line moves the line down at once.
+* Readings in one chunk get their own device times, so a batch is spread out correctly; only the
+  newest reading of a chunk constrains the fit (it is the least delayed).
+* Device clocks that wrap are unwrapped using the host time elapsed (so even a gap longer than one
+  wrap period counts the wraps right), and a jump that disagrees with the host clock by more than
+  ``reset_tolerance_s`` starts a new *epoch* (device reset or power cycle).
+* Streams without a device clock get a pseudo clock: the reading counter at the nominal rate. The
+  fit then recovers the true rate and dejitters arrivals; a delay beyond the gap threshold (a
+  stall, a reconnect, dropped readings) re-anchors it.
+
+Bus times never exceed the arrival time of their chunk and never go backwards within an epoch.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from typing import Sequence
+
+from capture.sample import ClockState, DeviceClockSpec
+
+log = logging.getLogger(__name__)
+
+
+def lower_hull(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
+    """Indices of the lower convex hull of points already sorted by x (Andrew's monotone chain)."""
+    hull: list[int] = []
+    for i in range(len(xs)):
+        xi, yi = xs[i], ys[i]
+        while len(hull) >= 2:
+            o, a = hull[-2], hull[-1]
+            # cross((a-o),(i-o)) <= 0 means a is not below segment o-i
+            if (xs[a] - xs[o]) * (yi - ys[o]) - (ys[a] - ys[o]) * (xi - xs[o]) <= 0:
+                hull.pop()
+            else:
+                break
+        hull.append(i)
+    return hull
+
+
+class ClockSync:
+    """Maps the readings of one stream to bus time.
+
+    Args:
+        stream: the stream name (for logs and states).
+        clock: the device clock, or ``None`` for streams without one.
+        nominal_rate_hz: the configured rate; needed for a pseudo clock.
+        window_s: how much history the fit uses.
+        bin_s: the bin over which only the least-delayed point is kept.
+        refit_s: how often (device time) the line is refitted.
+        reset_tolerance_s: a disagreement between device and host elapsed time beyond this starts a
+            new epoch. Clipped to a quarter of the wrap period for fast-wrapping counters.
+        gap_s: for pseudo clocks, a delay beyond this re-anchors (default: 4 periods, at least 50 ms).
+    """
+
+    def __init__(self, stream: str, clock: DeviceClockSpec | None, nominal_rate_hz: float | None, *,
+                 window_s: float | None = None, bin_s: float = 0.1, refit_s: float = 0.25,
+                 reset_tolerance_s: float = 1.0, gap_s: float | None = None) -> None:
+        self.stream = stream
+        self.pseudo = clock is None
+        if clock is None:
+            if nominal_rate_hz:
+                clock = DeviceClockSpec(tick_hz=float(nominal_rate_hz))
+            self._period_ns = 1e9 / nominal_rate_hz if nominal_rate_hz else 0.0
+        else:
+            self._period_ns = 1e9 / nominal_rate_hz if nominal_rate_hz else 0.0
+        self.spec = clock
+        self._ns_per_tick = 1e9 / clock.tick_hz if clock else 0.0
+        self._wrap = clock.wrap_ticks if clock else None
+        tol_ns = reset_tolerance_s * 1e9
+        if self._wrap:
+            tol_ns = min(tol_ns, 0.25 * self._wrap * self._ns_per_tick)
+        self._tol_ns = tol_ns
+        if window_s is None:
+            window_s = 4.0 if self.pseudo else 20.0
+        self._bin_ns = bin_s * 1e9
+        self._refit_ns = refit_s * 1e9
+        self._mins: deque[tuple[float, float]] = deque(maxlen=max(2, int(math.ceil(window_s / bin_s))))
+        self._gap_ns = (gap_s * 1e9) if gap_s is not None else max(50e6, 4 * self._period_ns)
+        # unwrapping state
+        self._last_raw: int | None = None
+        self._wraps = 0
+        self._counter = 0
+        self.epoch = -1
+        self.resets = 0
+        self.points = 0
+        self._state_dirty = False
+        self._new_epoch_pending = True
+        self._last_bus = -(2**62)
+
+    # -- epochs -------------------------------------------------------------------------------
+    def _start_epoch(self, dev_ns: int, host_ns: int) -> None:
+        self.epoch += 1
+        self._x0 = dev_ns
+        self._y0 = host_ns - dev_ns
+        self._a = 0.0
+        self._b = 0.0
+        self._mins.clear()
+        self._bin = 0
+        self._bin_min = (0.0, 0.0)
+        self._last_refit_x = 0.0
+        self._last_host = host_ns
+        self._last_dev = dev_ns
+        self._delay_hi = 0.0
+        self.points = 0
+        self._last_bus = -(2**62)
+        self._new_epoch_pending = False
+        self._state_dirty = True
+
+    # -- public -------------------------------------------------------------------------------
+    def stamp(self, t_host_ns: int, ticks: Sequence[int] | None, n: int = 1) -> tuple[list[int | None], list[int]]:
+        """Times for the ``n`` readings that arrived in one chunk at ``t_host_ns``.
+
+        Args:
+            t_host_ns: arrival time of the chunk.
+            ticks: raw device timestamps of the readings, oldest first, or ``None`` if the stream
+                has no device clock.
+            n: number of readings (used when ``ticks`` is None).
+
+        Returns:
+            ``(t_device_ns, t_bus_ns)`` lists, one entry per reading. ``t_device_ns`` entries are
+            ``None`` for streams without a device clock.
+        """
+        if ticks is not None:
+            n = len(ticks)
+            if self.pseudo:
+                raise ValueError(f"{self.stream}: device ticks given to a stream declared without a device clock")
+            devs = self._unwrap(ticks, t_host_ns)
+            out_dev: list[int | None] = list(devs)
+        else:
+            if n <= 0:
+                return [], []
+            if self.spec is None:  # no clock, no nominal rate: irregular stream
+                return [None] * n, self._irregular(t_host_ns, n)
+            c0 = self._counter
+            self._counter += n
+            p = self._period_ns
+            devs = [int(round((c0 + i) * p)) for i in range(n)]
+            out_dev = [None] * n
+        if n == 0:
+            return [], []
+        dev_last = devs[-1]
+        self._observe(dev_last, t_host_ns)
+        rate = 1.0 + self._b
+        base = self._x0 + self._y0 + self._a
+        bus: list[int] = []
+        last = self._last_bus
+        x0 = self._x0
+        for d in devs:
+            b = int(base + (d - x0) * rate)
+            if b > t_host_ns:
+                b = t_host_ns
+            if b < last:
+                b = last
+            bus.append(b)
+            last = b
+        self._last_bus = last
+        return out_dev, bus
+
+    def state(self, t_host_ns: int) -> ClockState | None:
+        """The current fit, or ``None`` before the first reading."""
+        if self.epoch < 0 or self.spec is None:
+            return None
+        return ClockState(self.stream, t_host_ns, self.epoch, int(self._x0),
+                          int(round(self._x0 + self._y0 + self._a)), 1.0 + self._b, self.points, self.pseudo)
+
+    def pop_state(self, t_host_ns: int) -> ClockState | None:
+        """The fit if it changed since the last call (for recording the clock-sync history)."""
+        if not self._state_dirty:
+            return None
+        self._state_dirty = False
+        return self.state(t_host_ns)
+
+    def predict_bus_ns(self, dev_ns: int) -> int:
+        """Bus time of a device time under the current fit (no clamping)."""
+        return int(self._x0 + self._y0 + self._a + (dev_ns - self._x0) * (1.0 + self._b))
+
+    # -- internals ----------------------------------------------------------------------------
+    def _irregular(self, t_host_ns: int, n: int) -> list[int]:
+        # Irregular streams with no clock and no nominal rate: keep order, 1 us apart, ending at arrival.
+        first = max(t_host_ns - (n - 1) * 1000, self._last_bus + 1)
+        out = [min(first + 1000 * i, t_host_ns) for i in range(n)]
+        self._last_bus = out[-1]
+        return out
+
+    def _unwrap(self, ticks: Sequence[int], t_host_ns: int) -> list[int]:
+        out: list[int] = []
+        wrap = self._wrap
+        npt = self._ns_per_tick
+        for i, raw in enumerate(ticks):
+            raw = int(raw)
+            if self._last_raw is not None and wrap:
+                step = raw - self._last_raw
+                if i == 0 and self.epoch >= 0:
+                    expected = (t_host_ns - self._last_host) / npt
+                    expected = max(0.0, expected - self._delay_hi / npt)
+                else:
+                    expected = 0.0
+                k = round((expected - step) / wrap)
+                if k > 0:
+                    self._wraps += k
+                elif step < -wrap // 2:
+                    self._wraps += 1
+            self._last_raw = raw
+            total = raw + self._wraps * wrap if wrap else raw
+            out.append(int(round(total * npt)))
+        return out
+
+    def _observe(self, dev: int, host: int) -> None:
+        if self._new_epoch_pending:
+            self._start_epoch(dev, host)
+        else:
+            delay = host - self.predict_bus_ns(dev)
+            back = dev < self._last_dev
+            if back or delay < -self._tol_ns or delay > self._tol_ns:
+                self.resets += 1
+                log.info("%s: clock epoch %d ends (device %s, delay %.1f ms)", self.stream, self.epoch,
+                         "went back" if back else "jumped", delay / 1e6)
+                self._start_epoch(dev, host)
+            elif self.pseudo and delay > self._gap_ns + 2 * self._delay_hi:
+                self.resets += 1
+                log.info("%s: arrival gap of %.1f ms; pseudo clock re-anchored", self.stream, delay / 1e6)
+                self._start_epoch(dev, host)
+        self.points += 1
+        self._last_host = host
+        self._last_dev = dev
+        x = float(dev - self._x0)
+        y = float(host - dev - self._y0)
+        line = self._a + self._b * x
+        d = y - line
+        if d < 0:
+            self._a += d  # the line was above a real point: move it down now
+            self._state_dirty = True
+        else:
+            self._delay_hi = max(d, self._delay_hi * 0.999)
+        b = int(x // self._bin_ns)
+        if b != self._bin:
+            if self.points > 1:
+                self._mins.append(self._bin_min)
+            self._bin = b
+            self._bin_min = (x, y)
+        elif self.points == 1 or y < self._bin_min[1]:
+            self._bin_min = (x, y)
+        if x - self._last_refit_x >= self._refit_ns:
+            self._refit()
+            self._last_refit_x = x
+
+    def _refit(self) -> None:
+        pts = list(self._mins)
+        pts.append(self._bin_min)
+        xs = [p[0] for p in pts]
+        ys = [p[1] for p in pts]
+        if len(pts) < 3 or xs[-1] - xs[0] < 1e9:
+            a, b = min(ys), 0.0
+            # keep the drift already learned, if any, while the window is short
+            if self._b != 0.0:
+                b = self._b
+                a = min(y - b * x for x, y in zip(xs, ys))
+        else:
+            hull = lower_hull(xs, ys)
+            xref = sum(xs) / len(xs)
+            j = 0
+            while j < len(hull) - 2 and xs[hull[j + 1]] < xref:
+                j += 1
+            i0, i1 = hull[j], hull[j + 1]
+            b = (ys[i1] - ys[i0]) / (xs[i1] - xs[i0])
+            a = ys[i0] - b * xs[i0]
+        self._a, self._b = a, b
+        self._state_dirty = True

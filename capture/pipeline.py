@@ -1,0 +1,202 @@
+"""A capture run: devices -> readers -> bus -> recorder (and live subscribers), started and stopped
+together. ``perfcap record``, ``perfcap demo`` and ``perfcap replay`` are thin layers over it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+from capture.bus import Overflow, SampleBus, Subscriber
+from capture.clock import MONOTONIC, Clock
+from capture.errors import ConfigError
+from capture.recorder import SessionRecorder
+from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
+from capture.session import SessionWriter
+from devices import Device, DeviceReader, DeviceSpec, ReconnectPolicy, open_device
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class StreamCounter:
+    samples: int = 0
+    gaps: int = 0
+    missing: int = 0
+    last_seq: int = -1
+    first_bus_ns: int | None = None
+    last_bus_ns: int | None = None
+
+    @property
+    def rate_hz(self) -> float:
+        if self.first_bus_ns is None or self.last_bus_ns is None or self.samples < 2:
+            return 0.0
+        span = (self.last_bus_ns - self.first_bus_ns) / 1e9
+        return (self.samples - 1) / span if span > 0 else 0.0
+
+
+class StreamStats(Subscriber):
+    """A live consumer: per-stream counts, measured rate and sequence gaps (drops before the bus)."""
+
+    accepts = frozenset({Sample, SampleBatch, DeviceEvent})
+
+    def __init__(self) -> None:
+        self.streams: dict[str, StreamCounter] = {}
+        self.events: list[DeviceEvent] = []
+        self._lock = threading.Lock()
+
+    def on_item(self, item: Any) -> None:
+        if type(item) is DeviceEvent:
+            self.events.append(item)
+            return
+        c = self.streams.get(item.stream)
+        if c is None:
+            c = self.streams[item.stream] = StreamCounter()
+        if type(item) is Sample:
+            seqs = (item.seq,)
+            c.samples += 1
+            first_b = last_b = item.t_bus_ns
+        else:
+            seqs = (int(item.seq[0]), int(item.seq[-1])) if len(item) else ()
+            c.samples += len(item)
+            if not len(item):
+                return
+            first_b, last_b = int(item.t_bus_ns[0]), int(item.t_bus_ns[-1])
+        if seqs:
+            if c.last_seq >= 0 and seqs[0] != c.last_seq + 1:
+                c.gaps += 1
+                c.missing += max(0, seqs[0] - c.last_seq - 1)
+            c.last_seq = seqs[-1]
+        if c.first_bus_ns is None:
+            c.first_bus_ns = first_b
+        c.last_bus_ns = last_b
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        return {k: {"samples": v.samples, "rate_hz": round(v.rate_hz, 2), "drops": v.missing}
+                for k, v in sorted(self.streams.items())}
+
+
+@dataclass
+class CaptureReport:
+    duration_s: float
+    devices: dict[str, dict[str, Any]]
+    streams: dict[str, dict[str, Any]]
+    subscribers: list[dict[str, Any]]
+    output: str | None
+    recorder_error: str | None = None
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+
+class Capture:
+    """Devices on one bus, optionally recorded.
+
+    Args:
+        devices: device specs/strings, or already built ``Device`` objects.
+        output: session file to record to, or ``None``.
+        overwrite: replace an existing session file.
+        max_loss_s: recorder flush bound (see ``SessionRecorder``).
+        fsync: fsync the session file at each flush.
+        recorder_max_bytes: memory bound of the recorder's queue.
+        live_queue: queue length of live subscribers.
+        reconnect: reconnect policy for all devices.
+        meta: extra session metadata.
+
+    Raises:
+        ConfigError: a device string or option is invalid (nothing has been started).
+        DeviceUnavailableError: unknown kind or scheme.
+        SessionExistsError / SessionError: the output cannot be created.
+    """
+
+    def __init__(self, devices: Sequence[Device | DeviceSpec | str], *, output: str | None = None,
+                 overwrite: bool = False, max_loss_s: float = 1.0, fsync: bool = True,
+                 recorder_max_bytes: int = 1 << 30, live_queue: int = 8192,
+                 reconnect: ReconnectPolicy = ReconnectPolicy(), meta: dict[str, str] | None = None,
+                 clock: Clock = MONOTONIC) -> None:
+        if not devices:
+            raise ConfigError("no devices given; add at least one with -d DEVICE (e.g. -d synth://imu)")
+        self.clock = clock
+        names: set[str] = set()
+        self.devices: list[Device] = []
+        for d in devices:
+            if isinstance(d, Device):
+                if d.name in names:
+                    raise ConfigError(f"device name {d.name!r} is used twice")
+                names.add(d.name)
+                self.devices.append(d)
+            else:
+                self.devices.append(open_device(d, clock=clock, taken_names=names))
+        self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
+        self.stats = StreamStats()
+        self.bus.subscribe(self.stats, policy=Overflow.KEEP_NEWEST, name="stats")
+        self.output = output
+        self.recorder: SessionRecorder | None = None
+        if output is not None:
+            writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
+                                   wall_time_s=getattr(clock, "wall_time_s", lambda: None)())
+            self.recorder = SessionRecorder(writer, max_loss_s=max_loss_s, clock=clock)
+            for d in self.devices:
+                self.recorder.add_device(d.name, d.kind, d.transport.url, d.device_options, d.identity,
+                                         d.streams, d.descriptors())
+            sub = self.bus.subscribe(self.recorder, policy=Overflow.NEVER_DROP, name="recorder")
+            self.recorder.subscription = sub
+        self.readers = [DeviceReader(d, self.bus, reconnect) for d in self.devices]
+        self._t_start = 0
+        self._stopped = False
+
+    def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST, name: str | None = None) -> Any:
+        return self.bus.subscribe(sub, policy=policy, name=name)
+
+    def start(self) -> Capture:
+        self._t_start = self.clock.now_ns()
+        for r in self.readers:
+            r.start()
+        return self
+
+    def run(self, duration_s: float | None, stop: threading.Event | None = None,
+            on_tick: Callable[[Capture, float], None] | None = None, tick_s: float = 1.0) -> CaptureReport:
+        """Start, wait for ``duration_s`` (None: until every device finished or ``stop`` is set), stop."""
+        stop = stop or threading.Event()
+        self.start()
+        try:
+            next_tick = tick_s
+            while True:
+                elapsed = (self.clock.now_ns() - self._t_start) / 1e9
+                if duration_s is not None and elapsed >= duration_s:
+                    break
+                if not any(r.alive for r in self.readers):
+                    break
+                wait = 0.05 if duration_s is None else max(0.0, min(0.05, duration_s - elapsed))
+                if stop.wait(wait):
+                    break
+                if on_tick and elapsed >= next_tick:
+                    on_tick(self, elapsed)
+                    next_tick += tick_s
+        finally:
+            report = self.stop()
+        return report
+
+    def stop(self) -> CaptureReport:
+        """Stop readers, drain every subscriber (the recorder writes everything), close the session."""
+        if self._stopped:
+            return self._report
+        self._stopped = True
+        for r in self.readers:
+            r.stop()
+        elapsed = (self.clock.now_ns() - self._t_start) / 1e9 if self._t_start else 0.0
+        subs = [s.__dict__ for s in self.bus.stats()]
+        self.bus.close()
+        rec_err = None
+        if self.recorder is not None and self.recorder.failed is not None:
+            rec_err = str(self.recorder.failed)
+        self._report = CaptureReport(
+            duration_s=elapsed,
+            devices={d.name: d.health() for d in self.devices},
+            streams=self.stats.snapshot(),
+            subscribers=subs,
+            output=self.output,
+            recorder_error=rec_err,
+            events=[e.to_dict() for e in self.stats.events if e.kind not in (EventKind.PROTOCOL_ERRORS,)],
+        )
+        return self._report

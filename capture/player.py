@@ -1,0 +1,153 @@
+"""Whole-session replay: every recorded device back through its codec onto a bus, on one shared
+timeline, with the replayed samples checked against the recorded ones.
+
+Replay is reached through the ``replay://`` transport (which lives with the simulators); this
+module only builds the URLs, so production code still never imports ``sim_devices``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Callable
+from urllib.parse import quote
+
+import numpy as np
+
+from capture.bus import Overflow, Subscriber
+from capture.clock import MONOTONIC, Clock
+from capture.errors import SessionError
+from capture.pipeline import Capture, CaptureReport
+from capture.sample import NO_TIME, Sample, SampleBatch
+from capture.session import SessionReader, decode_raw_block
+
+log = logging.getLogger(__name__)
+
+
+class ReplayVerifier(Subscriber):
+    """Compares replayed samples with the recorded ones, stream by stream, on the first pass.
+
+    Values must be identical (NaN equals NaN), and so must the sequence number, device time and
+    bus time; host times too when the replay keeps recorded stamps.
+    """
+
+    accepts = frozenset({Sample, SampleBatch})
+
+    def __init__(self, recorded: dict[str, SampleBatch], check_host_times: bool = True) -> None:
+        self.recorded = recorded
+        self.check_host = check_host_times
+        self.compared: dict[str, int] = {s: 0 for s in recorded}
+        self.mismatches: dict[str, int] = {s: 0 for s in recorded}
+        self.first_mismatch: dict[str, str] = {}
+        self.unexpected: dict[str, int] = {}
+        self._cols = {s: (b.seq.tolist(), b.t_host_ns.tolist(), b.t_device_ns.tolist(), b.t_bus_ns.tolist(),
+                          b.values.tolist()) for s, b in recorded.items()}
+
+    def on_item(self, item: Any) -> None:
+        for s in (item,) if type(item) is Sample else item.samples():
+            self._check(s)
+
+    def _check(self, s: Sample) -> None:
+        cols = self._cols.get(s.stream)
+        if cols is None:
+            self.unexpected[s.stream] = self.unexpected.get(s.stream, 0) + 1
+            return
+        i = self.compared[s.stream]
+        if i >= len(cols[0]):
+            return  # later loop passes, or readings past a truncated recording's last block
+        self.compared[s.stream] = i + 1
+        seq, th, td, tb, vals = (c[i] for c in cols)
+        dev = NO_TIME if s.t_device_ns is None else s.t_device_ns
+        same = (s.seq == seq and dev == td and s.t_bus_ns == tb and (not self.check_host or s.t_host_ns == th)
+                and len(s.values) == len(vals)
+                and all(a == b or (math.isnan(a) and math.isnan(b)) for a, b in zip(s.values, vals)))
+        if not same:
+            self.mismatches[s.stream] += 1
+            if s.stream not in self.first_mismatch:
+                self.first_mismatch[s.stream] = (f"seq {s.seq}: replayed {s} but recorded seq={seq} host={th} "
+                                                 f"device={td} bus={tb} values={tuple(vals)}")
+
+    def result(self) -> dict[str, Any]:
+        per = {}
+        for s, b in self.recorded.items():
+            per[s] = {"recorded": len(b), "compared": self.compared[s], "mismatches": self.mismatches[s],
+                      "missing": len(b) - self.compared[s]}
+        ok = all(v["mismatches"] == 0 and v["missing"] == 0 for v in per.values()) and not self.unexpected
+        return {"equal": ok, "streams": per, "unexpected": self.unexpected, "first_mismatch": self.first_mismatch}
+
+
+@dataclass
+class ReplayReport:
+    capture: CaptureReport
+    verification: dict[str, Any] | None
+    lateness_ns: list[int] = field(default_factory=list)
+    recorded_span_s: float = 0.0
+
+
+def session_t0(reader: SessionReader) -> int:
+    """The earliest recorded chunk time over all devices."""
+    t0 = None
+    for dev in reader.devices:
+        for c in reader.raw_chunks(dev):
+            t0 = c.t_ns if t0 is None else min(t0, c.t_ns)
+            break
+    if t0 is None:
+        raise SessionError(f"{reader.path} holds no raw data to replay", path=reader.path)
+    return t0
+
+
+def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify: bool = True,
+                   output: str | None = None, overwrite: bool = False, stop: threading.Event | None = None,
+                   on_tick: Callable[[Capture, float], None] | None = None, duration_s: float | None = None,
+                   clock: Clock = MONOTONIC, subscribers: list[tuple[Subscriber, Overflow]] | None = None) -> ReplayReport:
+    """Replay every device of a session.
+
+    Args:
+        path: the session file.
+        speed: 1 = recorded pace, 2 = twice as fast, 0 = as fast as possible.
+        loop: start over at the end (runs until ``stop`` or ``duration_s``).
+        verify: compare replayed samples with the recorded ones.
+        output: record the replay to a new session.
+
+    Raises:
+        SessionError: unreadable session, or nothing to replay.
+    """
+    reader = SessionReader(path)
+    if not reader.devices:
+        raise SessionError(f"{path} has no devices to replay", path=path)
+    if reader.truncated:
+        log.warning("%s was not closed cleanly (%s); replaying what it holds", path, reader.truncated)
+    t0 = session_t0(reader)
+    start = clock.now_ns() + 20_000_000
+    q = quote(path, safe="/:._-~")
+    urls = [f"{name}=replay://{q}?device={quote(name)}&speed={speed!r}&loop={'true' if loop else 'false'}"
+            f"&start_ns={start}&t0_ns={t0}" for name in reader.devices]
+    cap = Capture(urls, output=output, overwrite=overwrite, clock=clock,
+                  meta={"replay_of": path, "speed": repr(speed)})
+    verifier = None
+    if verify:
+        verifier = ReplayVerifier(reader.all_samples())
+        cap.subscribe(verifier, Overflow.NEVER_DROP, "verifier")
+    for sub, pol in subscribers or []:
+        cap.subscribe(sub, pol)
+    report = cap.run(duration_s, stop=stop, on_tick=on_tick)
+    lateness: list[int] = []
+    for d in cap.devices:
+        lateness.extend(getattr(d.transport, "lateness_ns", []))
+    span = 0.0
+    ends = [c.t_ns for d in reader.devices for c in _last_chunk(reader, d)]
+    if ends:
+        span = (max(ends) - t0) / 1e9
+    return ReplayReport(report, verifier.result() if verifier else None, lateness, span)
+
+
+def _last_chunk(reader: SessionReader, device: str) -> list[Any]:
+    last = None
+    for _t, _lt, _m, data in reader._records(topics={f"/raw/{device}"}):
+        last = data
+    return decode_raw_block(last)[-1:] if last is not None else []
+
+
+__all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "session_t0", "np"]

@@ -1,0 +1,428 @@
+"""Session files: MCAP, written as a take happens and readable even if the writer was killed.
+
+Layout of a perfcap session (MCAP profile ``perfcap``):
+
+* metadata ``perfcap.session``: format version, perfcap version, start wall time, host, command.
+* metadata ``device:<name>``: kind, transport URL, options, identity, stream names; descriptors
+  (report descriptors, calibration) as attachments ``<name>/<key>``.
+* channel ``/raw/<device>`` (encoding ``perfcap.raw.v1``): every transport chunk with its arrival
+  time and direction, in blocks.
+* channel ``/samples/<stream>`` (encoding ``perfcap.samples.v1``, channel metadata ``stream_info``):
+  decoded samples in column blocks (seq, host, device and bus times, values).
+* channel ``/clock/<stream>`` (JSON): the clock-sync fit each time it changes.
+* channel ``/events`` (JSON): device state changes, protocol errors, overflows, notes.
+* metadata ``perfcap.summary`` when the take ended cleanly.
+
+Blocks are columnar (int64 columns delta-coded, float64 values byte-shuffled) so zstd compresses
+them to about the size of the raw bytes. Every block is a separate MCAP message, and the writer
+closes an MCAP chunk and flushes the file at least every ``flush_interval_s``, so a killed recorder
+loses at most that much.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import struct
+from dataclasses import dataclass, field
+from typing import Any, BinaryIO, Iterator
+
+import numpy as np
+
+from capture.errors import SessionError, SessionExistsError
+from capture.sample import NO_TIME, Chunk, ClockState, DeviceEvent, Direction, SampleBatch, StreamInfo
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = "1"
+RAW_ENCODING = "perfcap.raw.v1"
+SAMPLES_ENCODING = "perfcap.samples.v1"
+
+RAW_SCHEMA_DOC = (
+    "perfcap raw block v1, little-endian: u32 n; i64[n] arrival host-monotonic ns, delta-coded (first absolute);"
+    " u8[n] direction (0 rx from device, 1 tx to device); u32[n] byte counts; then the chunks' bytes concatenated."
+)
+SAMPLES_SCHEMA_DOC = (
+    "perfcap sample block v1, little-endian: u32 n; u16 channels; u8 flags (bit0 device times present,"
+    " bit1 values byte-shuffled); i64[n] seq, i64[n] host ns, [i64[n] device ns (INT64_MIN = none)], i64[n] bus ns,"
+    " each delta-coded modulo 2^64 (first absolute); f64[n*channels] values row-major (if shuffled: the 8 byte planes"
+    " one after another)."
+)
+
+_hdr_raw = struct.Struct("<I")
+_hdr_samples = struct.Struct("<IHB")
+
+
+def _delta(a: np.ndarray) -> bytes:
+    if a.size == 0:
+        return b""
+    d = np.empty_like(a)
+    d[0] = a[0]
+    np.subtract(a[1:], a[:-1], out=d[1:])
+    return d.astype("<i8", copy=False).tobytes()
+
+
+def _undelta(buf: bytes | memoryview, n: int) -> np.ndarray:
+    d = np.frombuffer(buf, "<i8", n).astype(np.int64)
+    return np.cumsum(d, dtype=np.int64)
+
+
+def encode_raw_block(chunks: list[Chunk]) -> bytes:
+    n = len(chunks)
+    t = np.fromiter((c.t_ns for c in chunks), np.int64, n)
+    dirs = np.fromiter((int(c.direction) for c in chunks), np.uint8, n)
+    lens = np.fromiter((len(c.data) for c in chunks), np.uint32, n)
+    return b"".join([_hdr_raw.pack(n), _delta(t), dirs.tobytes(), lens.astype("<u4").tobytes(),
+                     *[c.data for c in chunks]])
+
+
+def decode_raw_block(data: bytes) -> list[Chunk]:
+    mv = memoryview(data)
+    (n,) = _hdr_raw.unpack_from(mv, 0)
+    o = _hdr_raw.size
+    t = _undelta(mv[o:o + 8 * n], n)
+    o += 8 * n
+    dirs = np.frombuffer(mv[o:o + n], np.uint8)
+    o += n
+    lens = np.frombuffer(mv[o:o + 4 * n], "<u4")
+    o += 4 * n
+    out = []
+    tl = t.tolist()
+    for i, ln in enumerate(lens.tolist()):
+        out.append(Chunk(bytes(mv[o:o + ln]), tl[i], Direction(int(dirs[i]))))
+        o += ln
+    if o != len(data):
+        raise ValueError(f"raw block length mismatch ({o} != {len(data)})")
+    return out
+
+
+def encode_sample_block(b: SampleBatch) -> bytes:
+    n = len(b)
+    c = b.values.shape[1] if b.values.ndim == 2 else 0
+    has_dev = bool(n and (b.t_device_ns != NO_TIME).any())
+    flags = (1 if has_dev else 0) | 2
+    vals = np.ascontiguousarray(b.values, dtype="<f8")
+    shuffled = vals.view(np.uint8).reshape(-1, 8).T.tobytes()
+    parts = [_hdr_samples.pack(n, c, flags), _delta(b.seq), _delta(b.t_host_ns)]
+    if has_dev:
+        parts.append(_delta(b.t_device_ns))
+    parts += [_delta(b.t_bus_ns), shuffled]
+    return b"".join(parts)
+
+
+def decode_sample_block(stream: str, data: bytes) -> SampleBatch:
+    mv = memoryview(data)
+    n, c, flags = _hdr_samples.unpack_from(mv, 0)
+    o = _hdr_samples.size
+    seq = _undelta(mv[o:o + 8 * n], n)
+    o += 8 * n
+    th = _undelta(mv[o:o + 8 * n], n)
+    o += 8 * n
+    if flags & 1:
+        td = _undelta(mv[o:o + 8 * n], n)
+        o += 8 * n
+    else:
+        td = np.full(n, NO_TIME, np.int64)
+    tb = _undelta(mv[o:o + 8 * n], n)
+    o += 8 * n
+    raw = np.frombuffer(mv[o:o + 8 * n * c], np.uint8)
+    if flags & 2:
+        vals = raw.reshape(8, n * c).T.copy().view("<f8").reshape(n, c)
+    else:
+        vals = raw.view("<f8").reshape(n, c).copy()
+    if o + 8 * n * c != len(data):
+        raise ValueError(f"sample block length mismatch for {stream}")
+    return SampleBatch(stream, seq, th, td, tb, vals.astype(np.float64))
+
+
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class DeviceRecord:
+    """What a session knows about one device."""
+
+    name: str
+    kind: str
+    url: str
+    options: dict[str, Any]
+    identity: dict[str, Any]
+    streams: list[str]
+    descriptors: dict[str, bytes] = field(default_factory=dict)
+
+
+class SessionWriter:
+    """Writes one session file.
+
+    Args:
+        path: the ``.mcap`` file to create.
+        overwrite: replace an existing file (otherwise ``SessionExistsError``).
+        chunk_bytes: MCAP chunk size before compression.
+        fsync: fsync the file at every flush (survives power loss, not only a killed process).
+        meta: extra session metadata (command line, config).
+
+    Raises:
+        SessionExistsError: ``path`` exists and ``overwrite`` is false.
+        SessionError: the file cannot be created.
+    """
+
+    def __init__(self, path: str, *, overwrite: bool = False, chunk_bytes: int = 4 << 20, fsync: bool = True,
+                 meta: dict[str, str] | None = None, wall_time_s: float | None = None) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.path = path
+        self.fsync = fsync
+        if os.path.isdir(path):
+            raise SessionError(f"{path} is a directory, not a session file", path=path)
+        try:
+            self._f: BinaryIO = open(path, "wb" if overwrite else "xb")
+        except FileExistsError:
+            raise SessionExistsError(f"{path} already exists (use --overwrite to replace it)", path=path) from None
+        except OSError as exc:
+            raise SessionError(f"cannot create {path}: {exc.strerror or exc}", path=path) from exc
+        self._w = Writer(self._f, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        self._w.start(profile="perfcap", library="perfcap")
+        from capture import __version__
+        import time as _t
+        m = {"format_version": FORMAT_VERSION, "perfcap_version": __version__, "host": socket.gethostname(),
+             "start_wall_time_s": repr(wall_time_s if wall_time_s is not None else _t.time())}
+        m.update(meta or {})
+        self._w.add_metadata("perfcap.session", m)
+        self._raw_schema = self._w.register_schema("perfcap.RawBlock", "text", RAW_SCHEMA_DOC.encode())
+        self._smp_schema = self._w.register_schema("perfcap.SampleBlock", "text", SAMPLES_SCHEMA_DOC.encode())
+        self._channels: dict[str, int] = {}
+        self._events = self._w.register_channel("/events", "json", 0)
+        self._seqs: dict[int, int] = {}
+        self.bytes_raw = 0
+        self.closed = False
+
+    def _channel(self, topic: str, encoding: str, schema: int, metadata: dict[str, str] | None = None) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            cid = self._w.register_channel(topic, encoding, schema, metadata or {})
+            self._channels[topic] = cid
+        return cid
+
+    def add_device(self, rec: DeviceRecord, streams: list[StreamInfo]) -> None:
+        self._w.add_metadata(f"device:{rec.name}", {
+            "kind": rec.kind, "url": rec.url, "options": json.dumps(rec.options, sort_keys=True),
+            "identity": json.dumps(rec.identity, sort_keys=True), "streams": json.dumps(rec.streams)})
+        for key, blob in rec.descriptors.items():
+            from mcap.records import Attachment  # noqa: F401 - the writer builds it
+            self._w.add_attachment(0, 0, f"{rec.name}/{key}", "application/octet-stream", blob)
+        self._channel(f"/raw/{rec.name}", RAW_ENCODING, self._raw_schema, {"device": rec.name, "kind": rec.kind})
+        for s in streams:
+            self.add_stream(s)
+
+    def add_stream(self, info: StreamInfo) -> None:
+        self._channel(f"/samples/{info.name}", SAMPLES_ENCODING, self._smp_schema, {"stream_info": info.to_json()})
+
+    def has_stream(self, name: str) -> bool:
+        return f"/samples/{name}" in self._channels
+
+    def _add(self, cid: int, t: int, data: bytes, now_ns: int) -> None:
+        seq = self._seqs.get(cid, 0)
+        self._seqs[cid] = seq + 1
+        self._w.add_message(cid, log_time=max(t, 0), data=data, publish_time=max(now_ns, 0), sequence=seq)
+
+    def write_raw(self, device: str, chunks: list[Chunk], now_ns: int) -> None:
+        cid = self._channels.get(f"/raw/{device}")
+        if cid is None:
+            cid = self._channel(f"/raw/{device}", RAW_ENCODING, self._raw_schema, {"device": device, "kind": ""})
+        self.bytes_raw += sum(len(c.data) for c in chunks)
+        self._add(cid, chunks[0].t_ns, encode_raw_block(chunks), now_ns)
+
+    def write_samples(self, batch: SampleBatch, now_ns: int) -> None:
+        cid = self._channels[f"/samples/{batch.stream}"]
+        self._add(cid, int(batch.t_bus_ns[0]), encode_sample_block(batch), now_ns)
+
+    def write_clock(self, state: ClockState, now_ns: int) -> None:
+        cid = self._channel(f"/clock/{state.stream}", "json", 0)
+        self._add(cid, state.t_host_ns, json.dumps(state.to_dict()).encode(), now_ns)
+
+    def write_event(self, ev: DeviceEvent, now_ns: int) -> None:
+        self._add(self._events, ev.t_host_ns, json.dumps(ev.to_dict()).encode(), now_ns)
+
+    def flush(self) -> None:
+        """Close the current MCAP chunk and push it to the disk (fsync if asked).
+
+        Raises:
+            SessionError: the disk write failed.
+        """
+        try:
+            self._w.flush()
+            if self.fsync:
+                os.fsync(self._f.fileno())
+        except OSError as exc:
+            raise SessionError(f"writing {self.path} failed: {exc.strerror or exc}", path=self.path) from exc
+
+    def close(self, summary: dict[str, Any] | None = None) -> None:
+        """Write the summary and the MCAP footer and close the file."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            if summary is not None:
+                self._w.add_metadata("perfcap.summary", {"json": json.dumps(summary, sort_keys=True, default=str)})
+            self._w.finish()
+            self._f.flush()
+            if self.fsync:
+                os.fsync(self._f.fileno())
+        except OSError as exc:
+            raise SessionError(f"closing {self.path} failed: {exc.strerror or exc}", path=self.path) from exc
+        finally:
+            self._f.close()
+
+
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class _Scan:
+    meta: dict[str, str] = field(default_factory=dict)
+    summary: dict[str, Any] | None = None
+    devices: dict[str, DeviceRecord] = field(default_factory=dict)
+    streams: dict[str, StreamInfo] = field(default_factory=dict)
+    truncated: str | None = None
+    bytes_read: int = 0
+
+
+class SessionReader:
+    """Reads a session, complete or cut short (a killed recorder): everything up to the last complete
+    MCAP chunk is returned and ``truncated`` says why reading stopped early.
+
+    Raises:
+        SessionError: the file does not exist, is not readable, or is not a perfcap session.
+    """
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        if not os.path.exists(path):
+            raise SessionError(f"{path}: no such file", path=path)
+        if os.path.isdir(path):
+            raise SessionError(f"{path} is a directory, not a session file", path=path)
+        self.size = os.path.getsize(path)
+        scan = _Scan()
+        for topic, _cid, _meta, rec in self._records(scan):
+            pass
+        if "format_version" not in scan.meta:
+            raise SessionError(f"{path} is an MCAP file but not a perfcap session", path=path)
+        self._scan = scan
+
+    @property
+    def meta(self) -> dict[str, str]:
+        return self._scan.meta
+
+    @property
+    def summary(self) -> dict[str, Any] | None:
+        return self._scan.summary
+
+    @property
+    def devices(self) -> dict[str, DeviceRecord]:
+        return self._scan.devices
+
+    @property
+    def streams(self) -> dict[str, StreamInfo]:
+        return self._scan.streams
+
+    @property
+    def truncated(self) -> str | None:
+        """Why reading stopped before the footer (a killed recorder), or ``None`` for a complete file."""
+        return self._scan.truncated
+
+    def _records(self, scan: _Scan | None = None, topics: set[str] | None = None,
+                 progress: Any = None) -> Iterator[tuple[str, int, dict[str, str], Any]]:
+        """Yield (topic, log_time, channel metadata, message data) for messages; fill ``scan``."""
+        from mcap.exceptions import McapError
+        from mcap.records import Attachment, Channel, Footer, Message, Metadata
+        from mcap.stream_reader import StreamReader
+
+        try:
+            f = open(self.path, "rb")
+        except OSError as exc:
+            raise SessionError(f"cannot read {self.path}: {exc.strerror or exc}", path=self.path) from exc
+        channels: dict[int, Channel] = {}
+        try:
+            try:
+                reader = StreamReader(f, record_size_limit=1 << 30)
+                for rec in reader.records:
+                    if progress is not None:
+                        progress(f.tell(), self.size)
+                    if isinstance(rec, Message):
+                        ch = channels.get(rec.channel_id)
+                        if ch is None:
+                            continue
+                        if topics is None or ch.topic in topics:
+                            yield ch.topic, rec.log_time, ch.metadata, rec.data
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = rec
+                        if scan is not None and rec.topic.startswith("/samples/"):
+                            info = StreamInfo.from_json(rec.metadata["stream_info"])
+                            scan.streams[info.name] = info
+                    elif scan is None:
+                        continue
+                    elif isinstance(rec, Metadata):
+                        self._metadata(scan, rec.name, rec.metadata)
+                    elif isinstance(rec, Attachment):
+                        dev, _, key = rec.name.partition("/")
+                        if dev in scan.devices:
+                            scan.devices[dev].descriptors[key] = rec.data
+                    elif isinstance(rec, Footer):
+                        break
+            except (McapError, EOFError, struct.error, ValueError, KeyError, OSError) as exc:
+                if isinstance(exc, McapError) and "magic" in str(exc).lower() and f.tell() <= 16:
+                    raise SessionError(f"{self.path} is not a session file (not MCAP)", path=self.path) from None
+                why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                if scan is not None:
+                    scan.truncated = f"file ends inside a record at or before byte {f.tell()} ({why})"
+            except Exception as exc:  # zstd errors and other codec failures of a damaged tail
+                if scan is not None:
+                    scan.truncated = f"damaged data at or before byte {f.tell()} ({type(exc).__name__}: {exc})"
+        finally:
+            f.close()
+
+    @staticmethod
+    def _metadata(scan: _Scan, name: str, m: dict[str, str]) -> None:
+        if name == "perfcap.session":
+            scan.meta = dict(m)
+        elif name == "perfcap.summary":
+            scan.summary = json.loads(m["json"])
+        elif name.startswith("device:"):
+            dn = name[len("device:"):]
+            scan.devices[dn] = DeviceRecord(dn, m["kind"], m["url"], json.loads(m["options"]),
+                                            json.loads(m["identity"]), json.loads(m["streams"]))
+
+    # -- data access ---------------------------------------------------------------------------------
+    def raw_chunks(self, device: str) -> Iterator[Chunk]:
+        """Every recorded chunk of a device, in order."""
+        for _t, _lt, _m, data in self._records(topics={f"/raw/{device}"}):
+            yield from decode_raw_block(data)
+
+    def sample_blocks(self, streams: set[str] | None = None, progress: Any = None) -> Iterator[SampleBatch]:
+        topics = None if streams is None else {f"/samples/{s}" for s in streams}
+        for topic, _lt, _m, data in self._records(topics=topics, progress=progress):
+            if topic.startswith("/samples/"):
+                yield decode_sample_block(topic[len("/samples/"):], data)
+
+    def samples(self, stream: str) -> SampleBatch:
+        """All decoded samples of one stream as one batch."""
+        blocks = list(self.sample_blocks({stream}))
+        if not blocks:
+            ch = len(self.streams[stream].channels) if stream in self.streams else 0
+            return SampleBatch.from_samples(stream, [], ch)
+        return SampleBatch.concat(blocks)
+
+    def all_samples(self, progress: Any = None) -> dict[str, SampleBatch]:
+        out: dict[str, list[SampleBatch]] = {s: [] for s in self.streams}
+        for b in self.sample_blocks(progress=progress):
+            out.setdefault(b.stream, []).append(b)
+        return {s: (SampleBatch.concat(v) if v else SampleBatch.from_samples(s, [], len(self.streams[s].channels)))
+                for s, v in out.items()}
+
+    def clock_states(self, stream: str | None = None) -> list[dict[str, Any]]:
+        out = []
+        for topic, _lt, _m, data in self._records():
+            if topic.startswith("/clock/") and (stream is None or topic == f"/clock/{stream}"):
+                out.append(json.loads(data))
+        return out
+
+    def events(self) -> list[dict[str, Any]]:
+        return [json.loads(d) for _t, _lt, _m, d in self._records(topics={"/events"})]

@@ -1,0 +1,1 @@
+"""Codecs: sans-IO parsers (bytes -> frames) with encoders (frames -> bytes) for simulators."""

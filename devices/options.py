@@ -1,0 +1,76 @@
+"""Typed options for transports and devices, given as URL query keys or config tables.
+
+Each Transport or Device class declares ``options: dict[str, Option]``; values are coerced and
+checked here, and an unknown key or a bad value raises ``ConfigError`` that shows the expected form.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from capture.errors import ConfigError
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option: its type (``int``, ``float``, ``bool``, ``str``), default, help and allowed choices."""
+
+    type: type
+    default: Any
+    help: str
+    choices: tuple[str, ...] | None = None
+    min: float | None = None
+    max: float | None = None
+
+    def form(self) -> str:
+        if self.choices:
+            return "|".join(self.choices)
+        return {int: "INT", float: "NUMBER", bool: "true|false", str: "TEXT"}.get(self.type, "VALUE")
+
+    def coerce(self, key: str, value: Any, where: str) -> Any:
+        try:
+            if self.type is bool:
+                if isinstance(value, bool):
+                    v: Any = value
+                elif str(value).lower() in _TRUE:
+                    v = True
+                elif str(value).lower() in _FALSE:
+                    v = False
+                else:
+                    raise ValueError
+            elif self.type is int:
+                if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                    raise ValueError
+                v = int(value)
+            elif self.type is float:
+                if isinstance(value, bool):
+                    raise ValueError
+                v = float(value)
+            else:
+                v = str(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: option {key}={value!r} is not {self.form()}", source=where) from None
+        if self.choices and v not in self.choices:
+            raise ConfigError(f"{where}: option {key}={value!r} must be one of {self.form()}", source=where)
+        if self.min is not None and v < self.min or self.max is not None and v > self.max:
+            raise ConfigError(f"{where}: option {key}={value!r} must be within [{self.min}, {self.max}]", source=where)
+        return v
+
+
+def resolve_options(spec: Mapping[str, Option], given: Mapping[str, Any], where: str, usage: str) -> dict[str, Any]:
+    """Defaults overlaid with ``given``, coerced; unknown keys raise ``ConfigError`` naming the known ones."""
+    out = {k: o.default for k, o in spec.items()}
+    for k, v in given.items():
+        if k not in spec:
+            known = ", ".join(f"{n}={o.form()}" for n, o in spec.items()) or "none"
+            raise ConfigError(f"{where}: unknown option {k!r}; expected {usage} with options: {known}", source=where)
+        out[k] = spec[k].coerce(k, v, where)
+    return out
+
+
+def describe(spec: Mapping[str, Option]) -> str:
+    return "\n".join(f"  {k}={o.form()}  {o.help} (default {o.default!r})" for k, o in spec.items())

@@ -1,0 +1,71 @@
+"""The transport registry: URL scheme -> Transport class.
+
+Built-in schemes are listed in ``TRANSPORTS`` as lazy ``(module, class)`` pairs; other packages
+(including perfcap's own ``sim_devices``) add schemes through the ``perfcap.transports`` entry-point
+group, so production code never imports the simulators.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from importlib.metadata import entry_points
+from typing import Any, Mapping
+
+from capture.clock import MONOTONIC, Clock
+from capture.errors import ConfigError, DeviceUnavailableError
+from devices.transports.base import Transport, split_url
+
+log = logging.getLogger(__name__)
+
+#: Built-in schemes. Serial (issue 3), HID (issue 4) and network (issue 5) transports join here.
+TRANSPORTS: dict[str, tuple[str, str]] = {}
+
+_ENTRY_POINT_GROUP = "perfcap.transports"
+
+
+def _entry_points() -> dict[str, Any]:
+    return {ep.name: ep for ep in entry_points(group=_ENTRY_POINT_GROUP)}
+
+
+def known_schemes() -> list[str]:
+    return sorted(set(TRANSPORTS) | set(_entry_points()))
+
+
+def transport_class(scheme: str) -> type[Transport]:
+    """The class registered for ``scheme``.
+
+    Raises:
+        DeviceUnavailableError: no transport has that scheme, or its module cannot be imported.
+    """
+    scheme = scheme.lower()
+    try:
+        if scheme in TRANSPORTS:
+            mod, cls = TRANSPORTS[scheme]
+            return getattr(importlib.import_module(mod), cls)  # type: ignore[no-any-return]
+        eps = _entry_points()
+        if scheme in eps:
+            return eps[scheme].load()  # type: ignore[no-any-return]
+    except ImportError as exc:
+        raise DeviceUnavailableError(f"the {scheme}:// transport cannot be loaded: {exc}", source=scheme) from exc
+    raise DeviceUnavailableError(
+        f"unknown transport scheme {scheme!r}; known schemes: {', '.join(known_schemes()) or 'none'}"
+        " (is perfcap installed with 'pip install -e .'?)", source=scheme)
+
+
+def open_transport(url: str, *, clock: Clock = MONOTONIC, extra: Mapping[str, Any] | None = None) -> Transport:
+    """A (not yet opened) transport for ``url``; ``extra`` options are merged over the URL's.
+
+    Raises:
+        ConfigError: malformed URL or options.
+        DeviceUnavailableError: unknown scheme.
+    """
+    scheme, address, opts = split_url(url)
+    if extra:
+        opts.update(extra)
+    cls = transport_class(scheme)
+    return cls(address, opts, clock=clock)
+
+
+__all__ = ["TRANSPORTS", "Transport", "open_transport", "split_url", "transport_class", "known_schemes",
+           "ConfigError"]

@@ -1,0 +1,64 @@
+"""A seeded generator of plausible hand-held motion: smooth multi-sine orientation (a performer
+waving a wrist rig at 0.2-2 Hz) plus small linear acceleration, giving the angular rate and the
+specific force an IMU strapped to it would measure."""
+
+from __future__ import annotations
+
+import math
+import random
+from typing import NamedTuple
+
+G = 9.80665
+
+
+class MotionSample(NamedTuple):
+    acc_g: tuple[float, float, float]        # specific force in the sensor frame, g
+    gyro_dps: tuple[float, float, float]     # body angular rate, deg/s
+    euler_deg: tuple[float, float, float]    # roll, pitch, yaw (ZYX), degrees
+
+
+class WavingMotion:
+    """Deterministic for a given seed; ``at(t)`` for any time in seconds."""
+
+    def __init__(self, seed: int = 1, amplitude_deg: float = 40.0) -> None:
+        rnd = random.Random(seed)
+        self.terms: list[list[tuple[float, float, float]]] = []
+        for axis in range(3):
+            amp = math.radians(amplitude_deg) * (0.5 if axis == 1 else 1.0)
+            terms = []
+            for _ in range(3):
+                terms.append((amp * rnd.uniform(0.2, 0.5), 2 * math.pi * rnd.uniform(0.2, 2.0), rnd.uniform(0, 2 * math.pi)))
+            self.terms.append(terms)
+        self.lin = [(rnd.uniform(0.2, 1.0), 2 * math.pi * rnd.uniform(0.5, 1.5), rnd.uniform(0, 2 * math.pi)) for _ in range(3)]
+
+    def at(self, t: float) -> MotionSample:
+        ang = []
+        rate = []
+        for terms in self.terms:
+            a = r = 0.0
+            for amp, w, ph in terms:
+                a += amp * math.sin(w * t + ph)
+                r += amp * w * math.cos(w * t + ph)
+            ang.append(a)
+            rate.append(r)
+        phi, theta, psi = ang
+        dphi, dtheta, dpsi = rate
+        sphi, cphi = math.sin(phi), math.cos(phi)
+        sth, cth = math.sin(theta), math.cos(theta)
+        sps, cps = math.sin(psi), math.cos(psi)
+        # body rates from ZYX Euler rates
+        p = dphi - dpsi * sth
+        q = dtheta * cphi + dpsi * cth * sphi
+        r = -dtheta * sphi + dpsi * cth * cphi
+        # world linear acceleration (m/s^2) plus gravity reaction, rotated into the body: R^T (a + g z)
+        ax, ay, az = (amp * math.sin(w * t + ph) for amp, w, ph in self.lin)
+        az += G
+        # R = Rz(psi) Ry(theta) Rx(phi); body = R^T world
+        r00, r01, r02 = cps * cth, cps * sth * sphi - sps * cphi, cps * sth * cphi + sps * sphi
+        r10, r11, r12 = sps * cth, sps * sth * sphi + cps * cphi, sps * sth * cphi - cps * sphi
+        r20, r21, r22 = -sth, cth * sphi, cth * cphi
+        bx = r00 * ax + r10 * ay + r20 * az
+        by = r01 * ax + r11 * ay + r21 * az
+        bz = r02 * ax + r12 * ay + r22 * az
+        d = math.degrees
+        return MotionSample((bx / G, by / G, bz / G), (d(p), d(q), d(r)), (d(phi), d(theta), d(psi)))

@@ -1,0 +1,136 @@
+"""``replay://SESSION.mcap?device=NAME`` - a recorded device, replayed below its codec.
+
+The transport returns the device's recorded chunks with their recorded arrival times (so the same
+Codec, Device and ClockSync produce the same samples), paced by deadline sleeping with a short
+final spin: in real time, at any speed factor, or as fast as possible (``speed=0``, deterministic,
+for CI). ``loop=true`` starts over, shifting times by the take's length so they keep increasing.
+Writes during the device's handshake are compared with the recorded TX chunks.
+
+Several replayed devices share one timeline when given the same ``start_ns`` (host time at which
+the recording's ``t0_ns`` is played); ``capture.player`` does this for whole sessions.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from typing import Any, Mapping
+
+from capture.clock import MONOTONIC, Clock
+from capture.errors import ConfigError, DeviceIOError, EndOfStream, ProtocolError, SessionError
+from capture.sample import Chunk, Direction
+from capture.session import DeviceRecord, SessionReader
+from devices.options import Option
+from devices.transports.base import Transport
+
+log = logging.getLogger(__name__)
+
+
+class ReplayTransport(Transport):
+    """Recorded chunks of one device, replayed with their timing; see the module docstring."""
+
+    scheme = "replay"
+    usage = "replay://SESSION.mcap?device=NAME&speed=1"
+    options = {
+        "device": Option(str, "", "which recorded device (needed if the session has several)"),
+        "speed": Option(float, 1.0, "playback speed factor; 0 = as fast as possible", min=0.0, max=1000.0),
+        "loop": Option(bool, False, "start over at the end"),
+        "start_ns": Option(int, 0, "host time at which t0_ns is played (0 = when opened)"),
+        "t0_ns": Option(int, 0, "recorded time played at start_ns (0 = the device's first chunk)"),
+        "stamp": Option(str, "recorded", "chunk times: the recorded ones, or the time of replay", ("recorded", "now")),
+        "strict": Option(bool, False, "fail when a handshake write differs from the recording"),
+    }
+
+    def __init__(self, address: str, options: Mapping[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
+        super().__init__(address, options, clock)
+        self.session = SessionReader(address)
+        devs = self.session.devices
+        name = self.opts["device"]
+        if not name:
+            if len(devs) != 1:
+                raise ConfigError(f"{self.url}: the session has {len(devs)} devices ({', '.join(devs) or 'none'});"
+                                  " choose one with ?device=NAME", source=self.url)
+            name = next(iter(devs))
+        if name not in devs:
+            raise ConfigError(f"{self.url}: no device {name!r} in the session (it has: {', '.join(devs) or 'none'})",
+                              source=self.url)
+        self.record: DeviceRecord = devs[name]
+        self._chunks: list[Chunk] | None = None
+        self._open = False
+        self._i = 0
+        self._pass = 0
+        self.tx_mismatches = 0
+        self.lateness_ns: deque[int] = deque(maxlen=200_000)
+
+    def implied_kind(self) -> str:
+        return self.record.kind
+
+    def implied_device_options(self) -> dict[str, Any]:
+        return dict(self.record.options)
+
+    def implied_name(self) -> str:
+        return self.record.name
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def open(self) -> None:
+        if self._chunks is None:
+            try:
+                self._chunks = list(self.session.raw_chunks(self.record.name))
+            except SessionError:
+                raise
+            self._rx = [c for c in self._chunks if c.direction is Direction.RX]
+            self._tx = deque(c for c in self._chunks if c.direction is Direction.TX)
+            if not self._rx:
+                raise EndOfStream(f"{self.url}: the session holds no data for {self.record.name}", source=self.url)
+            first, last = self._rx[0].t_ns, self._rx[-1].t_ns
+            n = len(self._rx)
+            self._span = (last - first) + ((last - first) // (n - 1) if n > 1 else 1_000_000)
+            self._t0 = self.opts["t0_ns"] or first
+            self._start = self.opts["start_ns"] or self.clock.now_ns()
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+
+    def write(self, data: bytes) -> Chunk:
+        if not self._open:
+            raise DeviceIOError(f"{self.url}: write on a closed transport", source=self.url)
+        expected = self._tx.popleft() if self._tx else None
+        if expected is None or expected.data != bytes(data):
+            self.tx_mismatches += 1
+            msg = (f"{self.url}: handshake write {bytes(data).hex()} differs from the recording "
+                   f"({expected.data.hex() if expected else 'nothing recorded'})")
+            if self.opts["strict"]:
+                raise ProtocolError(msg)
+            log.warning(msg)
+        return self.stamp_tx(data)
+
+    def read(self, timeout: float) -> Chunk | None:
+        if not self._open:
+            raise DeviceIOError(f"{self.url}: read on a closed transport", source=self.url)
+        rx = self._rx
+        if self._i >= len(rx):
+            if not self.opts["loop"]:
+                raise EndOfStream(f"{self.url}: end of recording", source=self.url)
+            self._i = 0
+            self._pass += 1
+        c = rx[self._i]
+        shift = self._pass * self._span
+        t_rec = c.t_ns + shift
+        speed = self.opts["speed"]
+        if speed > 0:
+            deadline = self._start + int((t_rec - self._t0) / speed)
+            now = self.clock.now_ns()
+            if deadline - now > timeout * 1e9:
+                self.clock.sleep_until_ns(now + int(timeout * 1e9))
+                return None
+            self.clock.sleep_until_ns(deadline)
+            late = self.clock.now_ns() - deadline
+            self.lateness_ns.append(late)
+        self._i += 1
+        if self.opts["stamp"] == "now":
+            return Chunk(c.data, self.clock.now_ns(), c.direction)
+        return Chunk(c.data, t_rec, c.direction) if shift else c
