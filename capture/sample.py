@@ -126,6 +126,9 @@ class StreamInfo:
         device: the device identity.
         frame: the coordinate frame of vector channels, in words.
         clock: the device clock, or ``None`` when readings carry no device time.
+        quantum: per channel, the step the device quantises to when every value is an exact
+            ``integer * quantum`` in float64 (lets sessions store them as integers, losslessly);
+            0.0 for channels without one. ``None`` for none at all.
     """
 
     name: str
@@ -136,11 +139,14 @@ class StreamInfo:
     device: DeviceIdentity
     frame: str | None = None
     clock: DeviceClockSpec | None = None
+    quantum: tuple[float, ...] | None = None
     extra: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if len(self.channels) != len(self.units):
             raise ValueError(f"stream {self.name}: {len(self.channels)} channels but {len(self.units)} units")
+        if self.quantum is not None and len(self.quantum) != len(self.channels):
+            raise ValueError(f"stream {self.name}: {len(self.channels)} channels but {len(self.quantum)} quanta")
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
@@ -150,7 +156,9 @@ class StreamInfo:
         d: dict[str, Any] = json.loads(text)
         dev = DeviceIdentity(**d.pop("device"))
         clk = d.pop("clock")
+        q = d.pop("quantum", None)
         return cls(device=dev, clock=None if clk is None else DeviceClockSpec(**clk),
+                   quantum=None if q is None else tuple(q),
                    channels=tuple(d.pop("channels")), units=tuple(d.pop("units")), **d)
 
 
@@ -190,7 +198,8 @@ class ClockState(NamedTuple):
 
     @property
     def drift_ppm(self) -> float:
-        return (self.rate - 1.0) * 1e6
+        """How fast the device clock runs relative to the host, ppm (positive: the device is fast)."""
+        return (1.0 / self.rate - 1.0) * 1e6 if self.rate > 0 else float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         d = self._asdict()

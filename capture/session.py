@@ -46,9 +46,10 @@ RAW_SCHEMA_DOC = (
 )
 SAMPLES_SCHEMA_DOC = (
     "perfcap sample block v1, little-endian: u32 n; u16 channels; u8 flags (bit0 device times present,"
-    " bit1 values byte-shuffled); i64[n] seq, i64[n] host ns, [i64[n] device ns (INT64_MIN = none)], i64[n] bus ns,"
-    " each delta-coded modulo 2^64 (first absolute); f64[n*channels] values row-major (if shuffled: the 8 byte planes"
-    " one after another)."
+    " bit2 column-wise values); i64[n] seq, i64[n] host ns, [i64[n] device ns (INT64_MIN = none)], i64[n] bus ns,"
+    " each delta-coded modulo 2^64 (first absolute); then per channel: u8 mode; mode 0: f64[n] as 8 byte planes"
+    " (all first bytes, then all second bytes, ...); mode 1: f64 quantum, i32[n] integers delta-coded, value ="
+    " integer * quantum exactly."
 )
 
 _hdr_raw = struct.Struct("<I")
@@ -98,17 +99,36 @@ def decode_raw_block(data: bytes) -> list[Chunk]:
     return out
 
 
-def encode_sample_block(b: SampleBatch) -> bytes:
+_q = struct.Struct("<Bd")
+
+
+def _encode_column(v: np.ndarray, quantum: float) -> bytes:
+    if quantum > 0 and v.size:
+        with np.errstate(invalid="ignore", over="ignore"):
+            k = np.round(v / quantum)
+            if np.all(np.abs(k) < 2**31) and np.array_equal(k * quantum, v):
+                ki = k.astype(np.int64)
+                d = np.empty_like(ki)
+                d[0] = ki[0]
+                np.subtract(ki[1:], ki[:-1], out=d[1:])
+                if np.all(np.abs(d) < 2**31):
+                    return _q.pack(1, quantum) + d.astype("<i4").tobytes()
+    return b"\x00" + np.ascontiguousarray(v, dtype="<f8").view(np.uint8).reshape(-1, 8).T.tobytes()
+
+
+def encode_sample_block(b: SampleBatch, quantum: tuple[float, ...] | None = None) -> bytes:
+    """Encode a batch; channels with a quantum whose values are exact multiples of it are stored as integers."""
     n = len(b)
     c = b.values.shape[1] if b.values.ndim == 2 else 0
     has_dev = bool(n and (b.t_device_ns != NO_TIME).any())
-    flags = (1 if has_dev else 0) | 2
-    vals = np.ascontiguousarray(b.values, dtype="<f8")
-    shuffled = vals.view(np.uint8).reshape(-1, 8).T.tobytes()
+    flags = (1 if has_dev else 0) | 4
     parts = [_hdr_samples.pack(n, c, flags), _delta(b.seq), _delta(b.t_host_ns)]
     if has_dev:
         parts.append(_delta(b.t_device_ns))
-    parts += [_delta(b.t_bus_ns), shuffled]
+    parts.append(_delta(b.t_bus_ns))
+    vals = np.asarray(b.values, dtype=np.float64)
+    for j in range(c):
+        parts.append(_encode_column(vals[:, j], quantum[j] if quantum else 0.0))
     return b"".join(parts)
 
 
@@ -127,14 +147,26 @@ def decode_sample_block(stream: str, data: bytes) -> SampleBatch:
         td = np.full(n, NO_TIME, np.int64)
     tb = _undelta(mv[o:o + 8 * n], n)
     o += 8 * n
-    raw = np.frombuffer(mv[o:o + 8 * n * c], np.uint8)
-    if flags & 2:
-        vals = raw.reshape(8, n * c).T.copy().view("<f8").reshape(n, c)
-    else:
-        vals = raw.view("<f8").reshape(n, c).copy()
-    if o + 8 * n * c != len(data):
+    if not flags & 4:
+        raise ValueError(f"sample block of {stream}: unknown value layout (flags {flags})")
+    vals = np.empty((n, c), np.float64)
+    for j in range(c):
+        mode = mv[o]
+        if mode == 0:
+            raw = np.frombuffer(mv[o + 1:o + 1 + 8 * n], np.uint8)
+            vals[:, j] = raw.reshape(8, n).T.copy().view("<f8").reshape(n)
+            o += 1 + 8 * n
+        elif mode == 1:
+            _, quantum = _q.unpack_from(mv, o)
+            o += _q.size
+            d = np.frombuffer(mv[o:o + 4 * n], "<i4").astype(np.int64)
+            vals[:, j] = np.cumsum(d).astype(np.float64) * quantum
+            o += 4 * n
+        else:
+            raise ValueError(f"sample block of {stream}: unknown column mode {mode}")
+    if o != len(data):
         raise ValueError(f"sample block length mismatch for {stream}")
-    return SampleBatch(stream, seq, th, td, tb, vals.astype(np.float64))
+    return SampleBatch(stream, seq, th, td, tb, vals)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -191,6 +223,7 @@ class SessionWriter:
         self._raw_schema = self._w.register_schema("perfcap.RawBlock", "text", RAW_SCHEMA_DOC.encode())
         self._smp_schema = self._w.register_schema("perfcap.SampleBlock", "text", SAMPLES_SCHEMA_DOC.encode())
         self._channels: dict[str, int] = {}
+        self._quantum: dict[str, tuple[float, ...] | None] = {}
         self._events = self._w.register_channel("/events", "json", 0)
         self._seqs: dict[int, int] = {}
         self.bytes_raw = 0
@@ -215,6 +248,7 @@ class SessionWriter:
             self.add_stream(s)
 
     def add_stream(self, info: StreamInfo) -> None:
+        self._quantum[info.name] = info.quantum
         self._channel(f"/samples/{info.name}", SAMPLES_ENCODING, self._smp_schema, {"stream_info": info.to_json()})
 
     def has_stream(self, name: str) -> bool:
@@ -234,7 +268,7 @@ class SessionWriter:
 
     def write_samples(self, batch: SampleBatch, now_ns: int) -> None:
         cid = self._channels[f"/samples/{batch.stream}"]
-        self._add(cid, int(batch.t_bus_ns[0]), encode_sample_block(batch), now_ns)
+        self._add(cid, int(batch.t_bus_ns[0]), encode_sample_block(batch, self._quantum.get(batch.stream)), now_ns)
 
     def write_clock(self, state: ClockState, now_ns: int) -> None:
         cid = self._channel(f"/clock/{state.stream}", "json", 0)

@@ -124,7 +124,13 @@ def open_device(spec: DeviceSpec | str, *, clock: Clock = MONOTONIC, taken_names
     tcls = transport_class(scheme)
     kind = spec.kind
     # First build the transport with its own options only, to learn an implied kind.
-    t_opts = {k: v for k, v in query.items() if k in tcls.options}
+    given = dict(query)
+    for k, v in spec.options.items():
+        if k in given:
+            raise ConfigError(f"device {str(spec)!r}: option {k!r} is given both in the URL and in options",
+                              source=str(spec))
+        given[k] = v
+    t_opts = {k: v for k, v in given.items() if k in tcls.options}
     if extra_transport_options:
         t_opts.update(extra_transport_options)
     transport = tcls(address, t_opts, clock=clock)
@@ -136,8 +142,7 @@ def open_device(spec: DeviceSpec | str, *, clock: Clock = MONOTONIC, taken_names
                           f" known kinds: {', '.join(known_kinds())}", source=str(spec))
     dcls = device_class(kind)
     d_opts: dict[str, Any] = dict(transport.implied_device_options())
-    d_opts.update(spec.options)
-    for k, v in query.items():
+    for k, v in given.items():
         if k in tcls.options:
             continue
         if k in dcls.options:

@@ -62,6 +62,7 @@ class DeviceStats:
     readings: int = 0
     reconnects: int = 0
     missing_time: int = 0
+    lost_readings: int = 0
     last_seen_ns: int | None = None
 
 
@@ -98,6 +99,8 @@ class Device(abc.ABC):
         self._seq = [0] * len(self.streams)
         self._syncs = [ClockSync(s.name, s.clock, s.nominal_rate_hz) for s in self.streams]
         self._last_ticks: list[int | None] = [None] * len(self.streams)
+        self._last_dev: list[int | None] = [None] * len(self.streams)
+        self._epochs = [-1] * len(self.streams)
         self._reported_errors = 0
 
     # -- what subclasses provide -----------------------------------------------------------------
@@ -117,8 +120,10 @@ class Device(abc.ABC):
         return {}
 
     def stream_info(self, suffix: str, kind: str, channels: tuple[str, ...], units: tuple[str, ...],
-                    rate: float | None, frame: str | None = None, clock: Any = None) -> StreamInfo:
-        return StreamInfo(f"{self.name}/{suffix}", kind, channels, units, rate, self.identity, frame, clock)
+                    rate: float | None, frame: str | None = None, clock: Any = None,
+                    quantum: tuple[float, ...] | None = None) -> StreamInfo:
+        return StreamInfo(f"{self.name}/{suffix}", kind, channels, units, rate, self.identity, frame, clock,
+                          quantum)
 
     # -- life cycle --------------------------------------------------------------------------------
     @property
@@ -197,9 +202,26 @@ class Device(abc.ABC):
                 devs, bus = sync.stamp(t, ticks)
             seq = self._seq[si]
             name = info.name
+            period = 1e9 / info.nominal_rate_hz if info.nominal_rate_hz else 0.0
+            if sync.epoch != self._epochs[si]:
+                self._epochs[si] = sync.epoch
+                self._last_dev[si] = None
+                if sync.epoch > 0:
+                    out.append(DeviceEvent(self.name, EventKind.CLOCK_RESET, t, f"{name}: clock epoch {sync.epoch}"))
+            last_dev = self._last_dev[si]
             for r, d, b in zip(rs, devs, bus):
+                if d is not None and period:
+                    # A device-time step of k periods means k-1 readings were lost before the host:
+                    # leave a gap of that size in the sequence numbers.
+                    if last_dev is not None:
+                        k = round((d - last_dev) / period)
+                        if 1 < k < 10_000:
+                            seq += k - 1
+                            st.lost_readings += k - 1
+                    last_dev = d
                 out.append(Sample(name, seq, t, d, b, r.values))
                 seq += 1
+            self._last_dev[si] = last_dev
             self._seq[si] = seq
             st.readings += len(rs)
             cs = sync.pop_state(t)

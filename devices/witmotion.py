@@ -27,6 +27,8 @@ G = 9.80665
 ACC_SCALE = 16.0 / 32768.0 * G
 GYRO_SCALE = math.radians(2000.0 / 32768.0)
 ANGLE_SCALE = 180.0 / 32768.0
+TEMP_SCALE = 0.01
+QUAT_SCALE = 1.0 / 32768.0
 MS_PER_DAY = 86_400_000
 
 IMU, EULER, MAGS, QUATS = 0, 1, 2, 3
@@ -52,10 +54,14 @@ class WitMotionImu(Device):
         self._order: list[int] = []
         return [
             self.stream_info("imu", "imu", ("ax", "ay", "az", "gx", "gy", "gz", "temp"),
-                             ("m/s^2", "m/s^2", "m/s^2", "rad/s", "rad/s", "rad/s", "degC"), rate, FRAME, clock),
-            self.stream_info("euler", "euler", ("roll", "pitch", "yaw"), ("deg", "deg", "deg"), rate, FRAME, clock),
-            self.stream_info("mag", "mag", ("mx", "my", "mz"), ("count", "count", "count"), rate, FRAME, clock),
-            self.stream_info("quat", "quat", ("w", "x", "y", "z"), ("1", "1", "1", "1"), rate, FRAME, clock),
+                             ("m/s^2", "m/s^2", "m/s^2", "rad/s", "rad/s", "rad/s", "degC"), rate, FRAME, clock,
+                             (ACC_SCALE,) * 3 + (GYRO_SCALE,) * 3 + (TEMP_SCALE,)),
+            self.stream_info("euler", "euler", ("roll", "pitch", "yaw"), ("deg", "deg", "deg"), rate, FRAME, clock,
+                             (ANGLE_SCALE,) * 3),
+            self.stream_info("mag", "mag", ("mx", "my", "mz"), ("count", "count", "count"), rate, FRAME, clock,
+                             (1.0,) * 3),
+            self.stream_info("quat", "quat", ("w", "x", "y", "z"), ("1", "1", "1", "1"), rate, FRAME, clock,
+                             (QUAT_SCALE,) * 4),
         ]
 
     def frame_to_readings(self, frame: WitPacket) -> Iterable[Reading]:
@@ -88,7 +94,7 @@ class WitMotionImu(Device):
             if acc is not None:
                 a = acc.words()
                 av = (a[0] * ACC_SCALE, a[1] * ACC_SCALE, a[2] * ACC_SCALE)
-                temp = a[3] / 100.0
+                temp = a[3] * TEMP_SCALE
             else:
                 av, temp = (nan, nan, nan), nan
             if gyr is not None:
@@ -108,7 +114,7 @@ class WitMotionImu(Device):
         q = c.get(QUAT)
         if q is not None:
             w = q.words()
-            out.append(Reading(QUATS, tuple(x / 32768.0 for x in w), ticks))
+            out.append(Reading(QUATS, tuple(x * QUAT_SCALE for x in w), ticks))
         return out
 
     def reset_after_reconnect(self) -> int:

@@ -80,5 +80,8 @@ class Codec(abc.ABC):
         if self.strict:
             raise ProtocolError(f"{self.name}: {message}", offset=offset, raw=raw)
         n = self.stats.errors
-        if n <= 5 or n % 1000 == 0:
-            log.warning("%s: %s (at byte %d; %d errors so far, resynchronising)", self.name, message, offset, n)
+        if n == 1 or n % 1000 == 0:
+            log.warning("%s: %s (at byte %d; %d bad frame(s) so far, resynchronising; all are counted)",
+                        self.name, message, offset, n)
+        else:
+            log.debug("%s: %s (at byte %d)", self.name, message, offset)
