@@ -127,20 +127,28 @@ class Capture:
                 self.devices.append(d)
             else:
                 self.devices.append(open_device(d, clock=clock, taken_names=names))
-        self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
-        self.stats = StreamStats()
-        self.bus.subscribe(self.stats, policy=Overflow.KEEP_NEWEST, name="stats")
         self.output = output
         self.recorder: SessionRecorder | None = None
-        if output is not None:
+        writer = None
+        if output is not None:  # before any thread starts: a bad path must leave nothing running
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
                                    wall_time_s=getattr(clock, "wall_time_s", lambda: None)())
-            self.recorder = SessionRecorder(writer, max_loss_s=max_loss_s, clock=clock)
-            for d in self.devices:
-                self.recorder.add_device(d.name, d.kind, d.transport.url, d.device_options, d.identity,
-                                         d.streams, d.descriptors())
-            sub = self.bus.subscribe(self.recorder, policy=Overflow.NEVER_DROP, name="recorder")
-            self.recorder.subscription = sub
+        self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
+        try:
+            self.stats = StreamStats()
+            self.bus.subscribe(self.stats, policy=Overflow.KEEP_NEWEST, name="stats")
+            if writer is not None:
+                self.recorder = SessionRecorder(writer, max_loss_s=max_loss_s, clock=clock)
+                for d in self.devices:
+                    self.recorder.add_device(d.name, d.kind, d.transport.url, d.device_options, d.identity,
+                                             d.streams, d.descriptors())
+                sub = self.bus.subscribe(self.recorder, policy=Overflow.NEVER_DROP, name="recorder")
+                self.recorder.subscription = sub
+        except BaseException:
+            self.bus.close()
+            if writer is not None and not writer.closed:
+                writer.close()
+            raise
         self.readers = [DeviceReader(d, self.bus, reconnect) for d in self.devices]
         self._t_start = 0
         self._stopped = False

@@ -124,7 +124,7 @@ class WitMotionImu(Device):
 
 
 def encode_cycle(codec: WitMotionCodec, acc_g: tuple[float, float, float], gyro_dps: tuple[float, float, float],
-                 angle_deg: tuple[float, float, float], temp_c: float = 25.0,
+                 angle_deg: tuple[float, float, float] | None, temp_c: float = 25.0,
                  ms_of_day: int | None = None, mag: tuple[int, int, int] | None = None) -> tuple[bytes, list[WitPacket]]:
     """The bytes a WT901 sends for one output cycle (used by simulators); returns (bytes, packets)."""
 
@@ -141,7 +141,8 @@ def encode_cycle(codec: WitMotionCodec, acc_g: tuple[float, float, float], gyro_
     pk.append(WitPacket.from_words(ACC, (q(acc_g[0], 16), q(acc_g[1], 16), q(acc_g[2], 16),
                                         max(-32768, min(32767, int(round(temp_c * 100)))))))
     pk.append(WitPacket.from_words(GYRO, (q(gyro_dps[0], 2000), q(gyro_dps[1], 2000), q(gyro_dps[2], 2000), 0)))
-    pk.append(WitPacket.from_words(ANGLE, (q(angle_deg[0], 180), q(angle_deg[1], 180), q(angle_deg[2], 180), 0)))
+    if angle_deg is not None:
+        pk.append(WitPacket.from_words(ANGLE, (q(angle_deg[0], 180), q(angle_deg[1], 180), q(angle_deg[2], 180), 0)))
     if mag is not None:
         pk.append(WitPacket.from_words(MAG, (mag[0], mag[1], mag[2], 0)))
     return b"".join(codec.encode(p) for p in pk), pk

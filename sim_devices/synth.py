@@ -1,7 +1,9 @@
 """``synth://`` - synthetic devices that encode generated motion through a real codec and deliver
 the bytes through the Transport interface, with the timing faults real links have.
 
-``synth://imu?rate=200&seed=1`` is a WitMotion WT901 waving on a wrist. Options model the link:
+``synth://imu?rate=200&seed=1`` is a WitMotion WT901 waving on a wrist;
+``synth://imu?csv=PATH`` plays a recorded IMU CSV instead (x-io/Fusion layout: time in s, gyroscope
+x/y/z in deg/s, accelerometer x/y/z in g), at the recording's own timestamps, gaps included. Options model the link:
 device clock drift, fixed latency, arrival jitter, FTDI-style bursts, garbage bytes, an unplug
 window and a device clock reset. With ``realtime=false`` it runs on a virtual host clock as fast
 as the reader asks (deterministic, for CI); ``truth=true`` keeps the true host time of every
@@ -11,6 +13,8 @@ reading so tests can measure clock-sync error end to end.
 from __future__ import annotations
 
 import random
+
+import numpy as np
 from typing import Any, Mapping
 
 from capture.clock import MONOTONIC, Clock
@@ -46,6 +50,7 @@ class SynthTransport(Transport):
         "unplug_at": Option(float, 0.0, "the device vanishes at this second (0 = never)", min=0.0),
         "unplug_for": Option(float, 1.0, "and comes back after this many seconds", min=0.0),
         "truth": Option(bool, False, "keep true host times of readings (tests)"),
+        "csv": Option(str, "", "play this IMU CSV (time s, gyro xyz deg/s, accel xyz g) instead of synthetic motion"),
     }
 
     def __init__(self, address: str, options: Mapping[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
@@ -55,7 +60,11 @@ class SynthTransport(Transport):
                               f" (form {self.usage})", source=self.url)
         o = self.opts
         self.motion = WavingMotion(o["seed"])
+        self._csv = _load_imu_csv(o["csv"], self.url) if o["csv"] else None
         self.codec = WitMotionCodec()
+        if self._csv is not None:
+            dt = np.diff(self._csv[:, 0])
+            self._csv_rate = round(1.0 / float(np.median(dt)), 3) if dt.size else 100.0
         self._rng = random.Random(o["seed"] * 7919 + 1)
         self._open = False
         self._i = 0
@@ -68,7 +77,10 @@ class SynthTransport(Transport):
         return KINDS[self.address]
 
     def implied_device_options(self) -> dict[str, Any]:
-        return {"rate": self.opts["rate"], "device_clock": self.opts["device_clock"]}
+        rate = self.opts["rate"]
+        if self._csv is not None:
+            rate = self._csv_rate
+        return {"rate": rate, "device_clock": self.opts["device_clock"]}
 
     @property
     def is_open(self) -> bool:
@@ -108,10 +120,19 @@ class SynthTransport(Transport):
         lat = o["latency_ms"] * 1e6
         jit = o["jitter_ms"] * 1e6
         burst = o["burst_ms"] * 1e6
+        csv = self._csv
         while True:
-            if o["duration"] and self._i / rate >= o["duration"]:
+            if csv is not None:
+                if self._i >= len(csv):
+                    return
+                dev_s = float(csv[self._i, 0] - csv[0, 0])
+            else:
+                dev_s = self._i / rate
+            if o["duration"] and dev_s >= o["duration"]:
                 return
-            dev_s = self._i / rate
+            if o["unplug_at"] and o["unplug_at"] <= dev_s < o["unplug_at"] + o["unplug_for"]:
+                self._i += 1  # the device is away: these readings never reach the host
+                continue
             true_host = self._host_ns(dev_s / (1.0 + drift))
             if burst:
                 rel = true_host - self._t0  # type: ignore[operator]
@@ -131,8 +152,12 @@ class SynthTransport(Transport):
                 else:
                     dev_ms += o["start_ms"]
                 ms = int(dev_ms)
-            m = self.motion.at(dev_s)
-            data, _ = encode_cycle(self.codec, m.acc_g, m.gyro_dps, m.euler_deg, 25.0, ms)
+            if csv is not None:
+                row = csv[self._i]
+                data, _ = encode_cycle(self.codec, (row[4], row[5], row[6]), (row[1], row[2], row[3]), None, 25.0, ms)
+            else:
+                m = self.motion.at(dev_s)
+                data, _ = encode_cycle(self.codec, m.acc_g, m.gyro_dps, m.euler_deg, 25.0, ms)
             if o["garbage"] and self._rng.random() < o["garbage"]:
                 data = bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(1, 12))) + data
             if o["truth"]:
@@ -154,7 +179,7 @@ class SynthTransport(Transport):
             if not self._queue:
                 self._produce_until(deadline)
             if not self._queue:
-                if o["duration"] and self._i / o["rate"] >= o["duration"]:
+                if self._finished():
                     raise EndOfStream(f"{self.url}: synthetic take finished", source=self.url)
                 self.clock.sleep_until_ns(deadline)
                 return None
@@ -175,9 +200,32 @@ class SynthTransport(Transport):
         self._virtual_now = max(self._virtual_now, arrival)
         return self._take(arrival, arrival)
 
+    def _finished(self) -> bool:
+        if self._csv is not None:
+            return self._i >= len(self._csv)
+        return bool(self.opts["duration"]) and self._i / self.opts["rate"] >= self.opts["duration"]
+
     def _take(self, arrival: int, stamp: int) -> Chunk:
         """Everything that arrives at ``arrival`` (one burst) as one chunk."""
         parts = []
         while self._queue and self._queue[0][0] <= arrival:
             parts.append(self._queue.pop(0)[1])
         return Chunk(b"".join(parts), stamp)
+
+
+def _load_imu_csv(path: str, url: str) -> np.ndarray:
+    """Rows of (time s, gyro xyz deg/s, accel xyz g) from an x-io/Fusion-layout CSV with a header row."""
+    try:
+        with open(path, "rb") as f:
+            data = np.genfromtxt(f, delimiter=",", skip_header=1, usecols=range(7), invalid_raise=True)
+    except OSError as exc:
+        raise ConfigError(f"{url}: cannot read {path}: {exc.strerror or exc}", source=url) from None
+    except ValueError as exc:
+        raise ConfigError(f"{url}: {path} is not an IMU CSV (time, gyro x/y/z, accel x/y/z): {exc}",
+                          source=url) from None
+    data = np.atleast_2d(data)
+    if data.shape[0] == 0 or data.shape[1] < 7 or not np.all(np.isfinite(data)):
+        raise ConfigError(f"{url}: {path} has no usable rows (need time, gyro x/y/z, accel x/y/z)", source=url)
+    if np.any(np.diff(data[:, 0]) <= 0):
+        raise ConfigError(f"{url}: {path}: times must increase", source=url)
+    return data

@@ -1,0 +1,166 @@
+"""The perfcap command line: each command on good input, and bad input giving one clear line and
+a non-zero exit, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from capture.cli import main
+
+FAST = "realtime=false&duration=2"
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    o = capsys.readouterr()
+    assert "Traceback" not in o.err and "Traceback" not in o.out
+    return code, o.out, o.err
+
+
+@pytest.fixture
+def take(tmp_path, capsys):
+    path = str(tmp_path / "t.mcap")
+    code, out, err = run(capsys, "record", "-q", "-d", f"a=synth://imu?rate=200&{FAST}",
+                         "-d", f"b=synth://imu?rate=100&device_clock=false&seed=2&{FAST}", "-o", path)
+    assert code == 0, err
+    return path
+
+
+def test_record_info_json(take, capsys):
+    code, out, _ = run(capsys, "info", take, "--json")
+    assert code == 0
+    info = json.loads(out)
+    assert info["complete"] is True and 1.9 < info["duration_s"] < 2.1
+    by = {s["name"]: s for s in info["streams"]}
+    assert {"name", "kind", "samples", "rate_hz", "drops"} <= set(by["a/imu"])
+    assert by["a/imu"]["samples"] == 400 and by["a/imu"]["kind"] == "imu" and by["a/imu"]["drops"] == 0
+    assert by["b/imu"]["rate_hz"] == pytest.approx(100, rel=0.01)
+    code, out, _ = run(capsys, "info", take)
+    assert code == 0 and "a/imu" in out and "drift" in out
+
+
+def test_replay_fast_verifies(take, capsys):
+    code, out, _ = run(capsys, "replay", take, "--fast", "-q")
+    assert code == 0 and "verified: all 1200 replayed samples equal" in out
+    code, out, _ = run(capsys, "replay", take, "--fast", "-q", "--json")
+    assert json.loads(out)["verification"]["equal"] is True
+
+
+def test_replay_realtime_speed(take, capsys):
+    code, out, _ = run(capsys, "replay", take, "--speed", "8", "-q", "--json")
+    r = json.loads(out)
+    assert code == 0 and r["verification"]["equal"]
+    assert r["wall_s"] == pytest.approx(2.0 / 8, abs=0.2)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "jsonl"])
+def test_export(take, tmp_path, capsys, fmt):
+    d = str(tmp_path / "exp")
+    code, out, _ = run(capsys, "export", take, "--format", fmt, "-o", d)
+    assert code == 0
+    files = sorted(os.listdir(d))
+    assert f"a__imu.{fmt}" in files and f"_events.{fmt}" in files
+    with open(os.path.join(d, f"a__imu.{fmt}")) as f:
+        lines = f.read().splitlines()
+    if fmt == "csv":
+        assert lines[0].startswith("seq,t_host_ns,t_device_ns,t_bus_ns,ax[m/s^2]") and len(lines) == 401
+    else:
+        row = json.loads(lines[0])
+        assert row["seq"] == 0 and set(row["values"]) == {"ax", "ay", "az", "gx", "gy", "gz", "temp"}
+        assert len(lines) == 400
+    code, _, err = run(capsys, "export", take, "--format", fmt, "-o", d)
+    assert code == 2 and "already exists" in err
+    assert run(capsys, "export", take, "--format", fmt, "-o", d, "--overwrite")[0] == 0
+
+
+def test_devices_lists_kinds_and_transports(capsys):
+    code, out, _ = run(capsys, "devices")
+    assert code == 0 and "witmotion" in out and "synth://imu" in out and "replay://" in out
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["record", "-d", "bogus", "-o", "{tmp}/x.mcap"], "expected [NAME=][KIND@]SCHEME://"),
+    (["record", "-d", "synth://imu?rte=1", "-o", "{tmp}/x.mcap"], "unknown option 'rte'"),
+    (["record", "-d", "nokind@synth://imu", "-o", "{tmp}/x.mcap"], "unknown device kind"),
+    (["record", "-d", "witmotion@nope://x", "-o", "{tmp}/x.mcap"], "unknown transport scheme"),
+    (["record", "-o", "{tmp}/x.mcap"], "no devices"),
+    (["record", "-d", "synth://imu", "--duration", "-1", "-o", "{tmp}/x.mcap"], "--duration must be a positive"),
+    (["record", "-d", "synth://imu", "--duration", "nan", "-o", "{tmp}/x.mcap"], "--duration must be a positive"),
+    (["record", "-d", "synth://imu", "--duration", "1", "-o", "{tmp}/x.mcap", "--config", "{tmp}/none.toml"],
+     "no such config file"),
+    (["record", "-d", "synth://imu", "--duration", "1", "-o", "{tmp}/x.mcap", "--profile", "nope"], "unknown profile"),
+    (["record", "-d", "synth://imu", "--duration", "1", "-o", "{tmp}"], "is a directory"),
+    (["record", "-d", "synth://imu", "--duration", "1", "-o", "{tmp}/no/such/dir/x.mcap"], "cannot create"),
+    (["record", "-d", "synth://imu", "--duration", "1", "-o", "{tmp}/x.mcap", "--max-loss", "0"], "max_loss_s"),
+    (["replay", "{tmp}/none.mcap"], "no such file"),
+    (["replay", "{tmp}/text.mcap", "--fast"], "not a session file"),
+    (["replay", "{tmp}", "--fast"], "is a directory"),
+    (["replay", "{tmp}/text.mcap", "--speed", "0"], "--speed must be a positive"),
+    (["info", "{tmp}/none.mcap"], "no such file"),
+    (["info", "{tmp}/text.mcap"], "not a session file"),
+    (["export", "{tmp}/none.mcap", "--format", "csv", "-o", "{tmp}/e"], "no such file"),
+    (["export", "{tmp}/text.mcap", "--format", "csv", "-o", "{tmp}/e"], "not a session file"),
+])
+def test_bad_input_is_one_clear_line(tmp_path, capsys, argv, match):
+    (tmp_path / "text.mcap").write_text("this is not a session\n")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    code, out, err = run(capsys, *argv)
+    assert code == 2
+    lines = [l for l in err.splitlines() if l.startswith("perfcap: error:")]
+    assert len(lines) == 1 and match in lines[0], err
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["record", "-d", "synth://imu"], "required: -o"),
+    (["export", "x.mcap", "--format", "xml", "-o", "d"], "invalid choice: 'xml'"),
+    (["replay", "x.mcap", "--speed", "fast"], "invalid float value"),
+    (["replay", "x.mcap", "--speed", "2", "--fast"], "not allowed with"),
+    (["frobnicate"], "invalid choice"),
+])
+def test_usage_errors(capsys, argv, match):
+    with pytest.raises(SystemExit) as ei:
+        main(argv)
+    err = capsys.readouterr().err
+    assert ei.value.code == 2 and match in err and "Traceback" not in err
+
+
+def test_existing_output_is_refused(take, capsys):
+    code, _, err = run(capsys, "record", "-q", "-d", f"synth://imu?{FAST}", "-o", take)
+    assert code == 2 and "already exists (use --overwrite" in err
+    code, _, err = run(capsys, "record", "-q", "-d", f"synth://imu?{FAST}", "-o", take, "--overwrite")
+    assert code == 0
+
+
+def test_record_from_config_file(tmp_path, capsys):
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(f'[[devices]]\nname = "w"\nurl = "synth://imu?{FAST}"\n[recorder]\nfsync = false\n')
+    out = str(tmp_path / "c.mcap")
+    code, o, err = run(capsys, "record", "-q", "--config", str(cfg), "-o", out, "--json")
+    assert code == 0, err
+    assert json.loads(o)["streams"]["w/imu"]["samples"] == 400  # 200 Hz for 2 s
+
+
+def test_failed_device_is_reported_with_nonzero_exit(tmp_path, capsys):
+    out = str(tmp_path / "f.mcap")
+    code, _, err = run(capsys, "record", "-q", "-d", f"replay://{tmp_path}/gone.mcap", "-o", out)
+    assert code == 2 and "no such file" in err
+
+
+def test_console_script_and_demo_run_without_shared(tmp_path):
+    """The demo, as a user runs it from a fresh clone: no hardware, no ../shared beside the cwd."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PERFCAP_")}
+    p = subprocess.run([sys.executable, "-m", "capture.cli", "demo", "--duration", "1.5", "-q",
+                        "-o", str(tmp_path / "demo.mcap")], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "all" in p.stdout and "equal the recorded ones" in p.stdout
+    assert "Traceback" not in p.stderr
+    p2 = subprocess.run([sys.executable, "-m", "capture.cli", "info", str(tmp_path / "demo.mcap"), "--json"],
+                        capture_output=True, text=True, timeout=60)
+    s = json.loads(p2.stdout)
+    assert {x["device"] for x in s["streams"]} == {"wrist", "ankle", "head"}
