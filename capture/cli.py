@@ -200,10 +200,10 @@ def cmd_info(args: argparse.Namespace) -> int:
     from capture.session import SessionReader
     from capture.summary import summarize
 
-    reader = SessionReader(args.session)
     prog = Progress("reading", args.json)
-    s = summarize(reader, prog)
+    reader = SessionReader(args.session, progress=prog)
     prog.done()
+    s = summarize(reader)
     if args.json:
         out(json.dumps(s, default=str))
         return 0
@@ -227,7 +227,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     from capture.sample import NO_TIME
     from capture.session import SessionReader
 
-    reader = SessionReader(args.session)
+    prog = Progress("reading", args.quiet)
+    reader = SessionReader(args.session, progress=prog)
+    prog.done()
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         raise ConfigError(f"{args.output} exists and is not a directory")
     os.makedirs(args.output, exist_ok=True)
@@ -237,9 +239,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     clash = [p for p in planned if os.path.exists(p)]
     if clash and not args.overwrite:
         raise ConfigError(f"{clash[0]} already exists (use --overwrite to replace the export)")
-    prog = Progress("exporting", args.quiet)
-    batches = reader.all_samples(progress=prog)
-    prog.done()
+    batches = reader.all_samples()
     total = 0
     for name, info in reader.streams.items():
         b = batches[name]

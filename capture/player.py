@@ -14,14 +14,12 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 from urllib.parse import quote
 
-import numpy as np
-
 from capture.bus import Overflow, Subscriber
 from capture.clock import MONOTONIC, Clock
 from capture.errors import SessionError
 from capture.pipeline import Capture, CaptureReport
 from capture.sample import NO_TIME, Sample, SampleBatch
-from capture.session import SessionReader, decode_raw_block
+from capture.session import SessionReader
 
 log = logging.getLogger(__name__)
 
@@ -86,16 +84,16 @@ class ReplayReport:
     recorded_span_s: float = 0.0
 
 
-def session_t0(reader: SessionReader) -> int:
-    """The earliest recorded chunk time over all devices."""
-    t0 = None
-    for dev in reader.devices:
-        for c in reader.raw_chunks(dev):
-            t0 = c.t_ns if t0 is None else min(t0, c.t_ns)
-            break
-    if t0 is None:
+def session_span(reader: SessionReader) -> tuple[int, int]:
+    """The earliest and latest recorded chunk times over all devices.
+
+    Raises:
+        SessionError: the session holds no raw data.
+    """
+    spans = [s for s in (reader.first_and_last_chunk_ns(d) for d in reader.devices) if s is not None]
+    if not spans:
         raise SessionError(f"{reader.path} holds no raw data to replay", path=reader.path)
-    return t0
+    return min(s[0] for s in spans), max(s[1] for s in spans)
 
 
 def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify: bool = True,
@@ -114,12 +112,12 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     Raises:
         SessionError: unreadable session, or nothing to replay.
     """
-    reader = SessionReader(path)
+    reader = SessionReader.open(path)
     if not reader.devices:
         raise SessionError(f"{path} has no devices to replay", path=path)
     if reader.truncated:
         log.warning("%s was not closed cleanly (%s); replaying what it holds", path, reader.truncated)
-    t0 = session_t0(reader)
+    t0, t_end = session_span(reader)
     start = clock.now_ns() + 20_000_000
     q = quote(path, safe="/:._-~")
     urls = [f"{name}=replay://{q}?device={quote(name)}&speed={speed!r}&loop={'true' if loop else 'false'}"
@@ -136,18 +134,7 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     lateness: list[int] = []
     for d in cap.devices:
         lateness.extend(getattr(d.transport, "lateness_ns", []))
-    span = 0.0
-    ends = [c.t_ns for d in reader.devices for c in _last_chunk(reader, d)]
-    if ends:
-        span = (max(ends) - t0) / 1e9
-    return ReplayReport(report, verifier.result() if verifier else None, lateness, span)
+    return ReplayReport(report, verifier.result() if verifier else None, lateness, (t_end - t0) / 1e9)
 
 
-def _last_chunk(reader: SessionReader, device: str) -> list[Any]:
-    last = None
-    for _t, _lt, _m, data in reader._records(topics={f"/raw/{device}"}):
-        last = data
-    return decode_raw_block(last)[-1:] if last is not None else []
-
-
-__all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "session_t0", "np"]
+__all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "session_span"]

@@ -323,11 +323,22 @@ class SessionReader:
     """Reads a session, complete or cut short (a killed recorder): everything up to the last complete
     MCAP chunk is returned and ``truncated`` says why reading stopped early.
 
+    The file is read once, in the constructor; the blocks are kept in memory (compressed by the
+    column encoding, not decoded) and decoded on demand. ``SessionReader.open`` shares one reader per
+    unchanged file, so replaying many devices of one session reads it once.
+
+    Args:
+        path: the session file.
+        progress: called as ``progress(bytes_read, file_size)`` while reading.
+
     Raises:
         SessionError: the file does not exist, is not readable, or is not a perfcap session.
     """
 
-    def __init__(self, path: str) -> None:
+    _cache: dict[tuple[str, int, int], SessionReader] = {}
+    _cache_lock = __import__("threading").Lock()
+
+    def __init__(self, path: str, progress: Any = None) -> None:
         self.path = path
         if not os.path.exists(path):
             raise SessionError(f"{path}: no such file", path=path)
@@ -335,11 +346,32 @@ class SessionReader:
             raise SessionError(f"{path} is a directory, not a session file", path=path)
         self.size = os.path.getsize(path)
         scan = _Scan()
-        for topic, _cid, _meta, rec in self._records(scan):
-            pass
+        self._msgs: dict[str, list[bytes]] = {}
+        for topic, _lt, _meta, data in self._records(scan, progress=progress):
+            lst = self._msgs.get(topic)
+            if lst is None:
+                lst = self._msgs[topic] = []
+            lst.append(data)
         if "format_version" not in scan.meta:
             raise SessionError(f"{path} is an MCAP file but not a perfcap session", path=path)
         self._scan = scan
+
+    @classmethod
+    def open(cls, path: str) -> SessionReader:
+        """A shared reader for ``path`` (read again only if the file changed)."""
+        try:
+            st = os.stat(path)
+        except OSError:
+            return cls(path)  # raises the right SessionError
+        key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
+        with cls._cache_lock:
+            r = cls._cache.get(key)
+            if r is None:
+                r = cls(path)
+                if len(cls._cache) >= 4:
+                    cls._cache.pop(next(iter(cls._cache)))
+                cls._cache[key] = r
+            return r
 
     @property
     def meta(self) -> dict[str, str]:
@@ -362,8 +394,7 @@ class SessionReader:
         """Why reading stopped before the footer (a killed recorder), or ``None`` for a complete file."""
         return self._scan.truncated
 
-    def _records(self, scan: _Scan | None = None, topics: set[str] | None = None,
-                 progress: Any = None) -> Iterator[tuple[str, int, dict[str, str], Any]]:
+    def _records(self, scan: _Scan, progress: Any = None) -> Iterator[tuple[str, int, dict[str, str], Any]]:
         """Yield (topic, log_time, channel metadata, message data) for messages; fill ``scan``."""
         from mcap.exceptions import McapError
         from mcap.records import Attachment, Channel, Footer, Message, Metadata
@@ -378,38 +409,34 @@ class SessionReader:
             try:
                 reader = StreamReader(f, record_size_limit=1 << 30)
                 for rec in reader.records:
-                    if progress is not None:
-                        progress(f.tell(), self.size)
                     if isinstance(rec, Message):
                         ch = channels.get(rec.channel_id)
-                        if ch is None:
-                            continue
-                        if topics is None or ch.topic in topics:
+                        if ch is not None:
                             yield ch.topic, rec.log_time, ch.metadata, rec.data
                     elif isinstance(rec, Channel):
                         channels[rec.id] = rec
-                        if scan is not None and rec.topic.startswith("/samples/"):
+                        if rec.topic.startswith("/samples/"):
                             info = StreamInfo.from_json(rec.metadata["stream_info"])
                             scan.streams[info.name] = info
-                    elif scan is None:
-                        continue
                     elif isinstance(rec, Metadata):
                         self._metadata(scan, rec.name, rec.metadata)
+                        if progress is not None:
+                            progress(f.tell(), self.size)
                     elif isinstance(rec, Attachment):
                         dev, _, key = rec.name.partition("/")
                         if dev in scan.devices:
                             scan.devices[dev].descriptors[key] = rec.data
                     elif isinstance(rec, Footer):
                         break
+                    elif progress is not None:
+                        progress(f.tell(), self.size)
             except (McapError, EOFError, struct.error, ValueError, KeyError, OSError) as exc:
                 if isinstance(exc, McapError) and "magic" in str(exc).lower() and f.tell() <= 16:
                     raise SessionError(f"{self.path} is not a session file (not MCAP)", path=self.path) from None
                 why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-                if scan is not None:
-                    scan.truncated = f"file ends inside a record at or before byte {f.tell()} ({why})"
+                scan.truncated = f"file ends inside a record at or before byte {f.tell()} ({why})"
             except Exception as exc:  # zstd errors and other codec failures of a damaged tail
-                if scan is not None:
-                    scan.truncated = f"damaged data at or before byte {f.tell()} ({type(exc).__name__}: {exc})"
+                scan.truncated = f"damaged data at or before byte {f.tell()} ({type(exc).__name__}: {exc})"
         finally:
             f.close()
 
@@ -427,14 +454,23 @@ class SessionReader:
     # -- data access ---------------------------------------------------------------------------------
     def raw_chunks(self, device: str) -> Iterator[Chunk]:
         """Every recorded chunk of a device, in order."""
-        for _t, _lt, _m, data in self._records(topics={f"/raw/{device}"}):
+        for data in self._msgs.get(f"/raw/{device}", ()):
             yield from decode_raw_block(data)
 
-    def sample_blocks(self, streams: set[str] | None = None, progress: Any = None) -> Iterator[SampleBatch]:
-        topics = None if streams is None else {f"/samples/{s}" for s in streams}
-        for topic, _lt, _m, data in self._records(topics=topics, progress=progress):
-            if topic.startswith("/samples/"):
-                yield decode_sample_block(topic[len("/samples/"):], data)
+    def first_and_last_chunk_ns(self, device: str) -> tuple[int, int] | None:
+        blocks = self._msgs.get(f"/raw/{device}")
+        if not blocks:
+            return None
+        return decode_raw_block(blocks[0])[0].t_ns, decode_raw_block(blocks[-1])[-1].t_ns
+
+    def sample_blocks(self, streams: set[str] | None = None) -> Iterator[SampleBatch]:
+        for topic, blocks in self._msgs.items():
+            if not topic.startswith("/samples/"):
+                continue
+            name = topic[len("/samples/"):]
+            if streams is None or name in streams:
+                for data in blocks:
+                    yield decode_sample_block(name, data)
 
     def samples(self, stream: str) -> SampleBatch:
         """All decoded samples of one stream as one batch."""
@@ -444,19 +480,15 @@ class SessionReader:
             return SampleBatch.from_samples(stream, [], ch)
         return SampleBatch.concat(blocks)
 
-    def all_samples(self, progress: Any = None) -> dict[str, SampleBatch]:
-        out: dict[str, list[SampleBatch]] = {s: [] for s in self.streams}
-        for b in self.sample_blocks(progress=progress):
-            out.setdefault(b.stream, []).append(b)
-        return {s: (SampleBatch.concat(v) if v else SampleBatch.from_samples(s, [], len(self.streams[s].channels)))
-                for s, v in out.items()}
+    def all_samples(self) -> dict[str, SampleBatch]:
+        return {s: self.samples(s) for s in self.streams}
 
     def clock_states(self, stream: str | None = None) -> list[dict[str, Any]]:
         out = []
-        for topic, _lt, _m, data in self._records():
+        for topic, blocks in self._msgs.items():
             if topic.startswith("/clock/") and (stream is None or topic == f"/clock/{stream}"):
-                out.append(json.loads(data))
+                out += [json.loads(d) for d in blocks]
         return out
 
     def events(self) -> list[dict[str, Any]]:
-        return [json.loads(d) for _t, _lt, _m, d in self._records(topics={"/events"})]
+        return [json.loads(d) for d in self._msgs.get("/events", ())]

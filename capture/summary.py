@@ -4,17 +4,15 @@ devices, clock fits, events, and whether the file was closed cleanly."""
 from __future__ import annotations
 
 import os
-from typing import Any, Callable
-
-import numpy as np
+from typing import Any
 
 from capture.sample import NO_TIME
 from capture.session import SessionReader
 
 
-def summarize(reader: SessionReader, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+def summarize(reader: SessionReader) -> dict[str, Any]:
     """A JSON-ready summary of a session (see ``perfcap info --json``)."""
-    batches = reader.all_samples(progress=progress)
+    batches = reader.all_samples()
     streams = []
     t_min: int | None = None
     t_max: int | None = None
@@ -72,4 +70,4 @@ def drop_total(summary: dict[str, Any]) -> int:
     return int(sum(s["drops"] for s in summary["streams"])) + int(summary.get("recorder_dropped") or 0)
 
 
-__all__ = ["summarize", "drop_total", "np"]
+__all__ = ["summarize", "drop_total"]

@@ -43,7 +43,7 @@ class ReplayTransport(Transport):
 
     def __init__(self, address: str, options: Mapping[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
         super().__init__(address, options, clock)
-        self.session = SessionReader(address)
+        self.session = SessionReader.open(address)
         devs = self.session.devices
         name = self.opts["device"]
         if not name:
