@@ -29,7 +29,47 @@ def header(title: str) -> None:
     print(f"== {title}")
     print(f"   {time.strftime('%Y-%m-%d %H:%M:%S')}  host={platform.node()}  nproc={os.cpu_count()}  "
           f"python={platform.python_version()}  {platform.machine()}  switchinterval={sys.getswitchinterval()}")
+    print(f"   code: {code_version()}")
+    la = os.getloadavg()
+    busy = machine_busy()
+    print(f"   load average at start: {la[0]:.2f} {la[1]:.2f} {la[2]:.2f}; CPU busy over the last 0.5 s: "
+          + ("n/a" if busy is None else f"{busy * 100:.0f}% of the machine")
+          + " (other work on the machine skews timings)")
     print()
+
+
+def machine_busy(interval_s: float = 0.5) -> float | None:
+    """Fraction of all CPUs busy (any process) over ``interval_s``, from /proc/stat; None if unavailable."""
+    def read() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        idle = v[3] + (v[4] if len(v) > 4 else 0)
+        return sum(v), idle
+    try:
+        t0, i0 = read()
+        time.sleep(interval_s)
+        t1, i1 = read()
+    except (OSError, ValueError, IndexError):
+        return None
+    return 1.0 - (i1 - i0) / max(1, t1 - t0)
+
+
+def code_version() -> str:
+    """The git commit of the code measured, and whether tracked files differ from it."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                             timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=10).stdout.split("\n")
+        changed = [ln[3:] for ln in dirty if ln.strip()]
+    except (OSError, subprocess.SubprocessError):
+        return "unknown (no git)"
+    if not rev:
+        return "unknown (not a git checkout)"
+    return rev + (f" + uncommitted changes in {', '.join(changed)}" if changed else " (clean)")
 
 
 def check(label: str, ok: bool, detail: str) -> bool:

@@ -28,12 +28,12 @@ from dataclasses import dataclass
 from typing import Any, Iterable
 
 from capture.clock import MONOTONIC, Clock
-from capture.sample import ClockState, DeviceChunk, DeviceEvent, EventKind, Sample, SampleBatch
+from capture.sample import ClockState, DeviceChunk, DeviceChunks, DeviceEvent, EventKind, Sample, SampleBatch
 
 log = logging.getLogger(__name__)
 
 SAMPLES: frozenset[type] = frozenset({Sample, SampleBatch})
-EVERYTHING: frozenset[type] = frozenset({Sample, SampleBatch, DeviceChunk, ClockState, DeviceEvent})
+EVERYTHING: frozenset[type] = frozenset({Sample, SampleBatch, DeviceChunk, DeviceChunks, ClockState, DeviceEvent})
 
 _STOP = object()
 
@@ -79,6 +79,8 @@ def item_size(item: Any) -> int:
         return 200 + item.nbytes
     if type(item) is DeviceChunk:
         return 150 + len(item.chunk.data)
+    if type(item) is DeviceChunks:
+        return 100 + 150 * len(item.chunks) + len(item.chunks.data)
     return 300
 
 

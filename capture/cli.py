@@ -213,7 +213,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     for d in s["devices"]:
         out(f"  device {d['name']}: {d['kind']} @ {d['url']}")
     for st in s["streams"]:
-        clk = s["clock_sync"].get(st["name"], {})
+        clk = st["clock"] or {}
         c = (f"drift {clk['drift_ppm']:+.1f} ppm, {clk['epochs']} epoch(s)" if clk and not clk.get("pseudo")
              else "no device clock (dejittered arrivals)" if clk else "")
         out(f"  {st['name']:24s} {st['kind']:8s} {st['samples']:8d} samples {st['rate_hz']:9.2f} Hz "
@@ -314,7 +314,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     for st in s["streams"]:
         if not st["name"].endswith("/imu"):
             continue
-        clk = s["clock_sync"].get(st["name"], {})
+        clk = st["clock"] or {}
         dev = st["device"]
         if clk.get("pseudo"):
             desc = "no device clock: bus times from the dejittered arrival pattern"
@@ -429,9 +429,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="perfcap: %(levelname)s: %(message)s", stream=sys.stderr)
-    # Shorter interpreter switch interval: reader and delivery threads wake within ~0.5 ms even while
-    # another thread is busy encoding (the default 5 ms would dominate the latency tail).
-    sys.setswitchinterval(0.0005)
+    if args.command in ("record", "demo") or args.command == "replay" and not args.fast:
+        # Live work: a shorter interpreter switch interval lets reader and delivery threads wake
+        # within ~0.5 ms while another thread is busy encoding (the default 5 ms would dominate the
+        # latency tail). Offline work keeps the default, which is faster for it.
+        sys.setswitchinterval(0.0005)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_BAD_INPUT

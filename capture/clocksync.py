@@ -33,6 +33,8 @@ import math
 from collections import deque
 from typing import Sequence
 
+import numpy as np
+
 from capture.sample import ClockState, DeviceClockSpec
 
 log = logging.getLogger(__name__)
@@ -54,32 +56,37 @@ def lower_hull(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
     return hull
 
 
+_LOOKAHEAD = 512
+
+
 class ClockSync:
-    """Maps the readings of one stream to bus time.
+    """Maps the readings of one clock domain (a device clock, or one stream's pseudo clock) to bus time.
+
+    ``stamp`` handles one chunk; ``stamp_many`` handles many chunks at once with numpy and gives
+    bit-identical results (offline replay uses it; ``tests/unit/capture/test_clocksync.py`` checks
+    the equality).
 
     Args:
-        stream: the stream name (for logs and states).
+        stream: the domain's name (for logs and states).
         clock: the device clock, or ``None`` for streams without one.
         nominal_rate_hz: the configured rate; needed for a pseudo clock.
         window_s: how much history the fit uses.
         bin_s: the bin over which only the least-delayed point is kept.
-        refit_s: how often (device time) the line is refitted.
+        refit_s: how often (device time) the line is refitted from the hull.
         reset_tolerance_s: a disagreement between device and host elapsed time beyond this starts a
             new epoch. Clipped to a quarter of the wrap period for fast-wrapping counters.
-        gap_s: for pseudo clocks, a delay beyond this re-anchors (default: 4 periods, at least 50 ms).
+        gap_s: for pseudo clocks, a delay beyond this (plus twice the largest recent delay)
+            re-anchors (default: 4 periods, at least 50 ms).
     """
 
     def __init__(self, stream: str, clock: DeviceClockSpec | None, nominal_rate_hz: float | None, *,
-                 window_s: float | None = None, bin_s: float = 0.1, refit_s: float = 0.25,
+                 window_s: float | None = None, bin_s: float = 0.1, refit_s: float = 1.0,
                  reset_tolerance_s: float = 1.0, gap_s: float | None = None) -> None:
         self.stream = stream
         self.pseudo = clock is None
-        if clock is None:
-            if nominal_rate_hz:
-                clock = DeviceClockSpec(tick_hz=float(nominal_rate_hz))
-            self._period_ns = 1e9 / nominal_rate_hz if nominal_rate_hz else 0.0
-        else:
-            self._period_ns = 1e9 / nominal_rate_hz if nominal_rate_hz else 0.0
+        self._period_ns = 1e9 / nominal_rate_hz if nominal_rate_hz else 0.0
+        if clock is None and nominal_rate_hz:
+            clock = DeviceClockSpec(tick_hz=float(nominal_rate_hz))
         self.spec = clock
         self._ns_per_tick = 1e9 / clock.tick_hz if clock else 0.0
         self._wrap = clock.wrap_ticks if clock else None
@@ -91,18 +98,21 @@ class ClockSync:
             window_s = 4.0 if self.pseudo else 20.0
         self._bin_ns = bin_s * 1e9
         self._refit_ns = refit_s * 1e9
-        self._mins: deque[tuple[float, float]] = deque(maxlen=max(2, int(math.ceil(window_s / bin_s))))
+        n = max(2, int(math.ceil(window_s / bin_s)))
+        self._mins: deque[tuple[float, float]] = deque(maxlen=n)
+        self._maxs: deque[tuple[float, float]] = deque(maxlen=n)
         self._gap_ns = (gap_s * 1e9) if gap_s is not None else max(50e6, 4 * self._period_ns)
-        # unwrapping state
         self._last_raw: int | None = None
         self._wraps = 0
         self._counter = 0
+        self._last_host = 0
         self.epoch = -1
         self.resets = 0
         self.points = 0
         self._state_dirty = False
         self._new_epoch_pending = True
         self._last_bus = -(2**62)
+        self._delay_hi = 0.0
 
     # -- epochs -------------------------------------------------------------------------------
     def _start_epoch(self, dev_ns: int, host_ns: int) -> None:
@@ -112,8 +122,10 @@ class ClockSync:
         self._a = 0.0
         self._b = 0.0
         self._mins.clear()
+        self._maxs.clear()
         self._bin = 0
         self._bin_min = (0.0, 0.0)
+        self._bin_max = (0.0, 0.0)
         self._last_refit_x = 0.0
         self._last_host = host_ns
         self._last_dev = dev_ns
@@ -129,18 +141,23 @@ class ClockSync:
 
         Args:
             t_host_ns: arrival time of the chunk.
-            ticks: raw device timestamps of the readings, oldest first, or ``None`` if the stream
+            ticks: raw device timestamps of the readings, oldest first, or ``None`` if the domain
                 has no device clock.
             n: number of readings (used when ``ticks`` is None).
 
         Returns:
             ``(t_device_ns, t_bus_ns)`` lists, one entry per reading. ``t_device_ns`` entries are
             ``None`` for streams without a device clock.
+
+        Raises:
+            ValueError: ticks given to a domain without a device clock.
         """
         if ticks is not None:
             n = len(ticks)
             if self.pseudo:
                 raise ValueError(f"{self.stream}: device ticks given to a stream declared without a device clock")
+            if n == 0:
+                return [], []
             devs = self._unwrap(ticks, t_host_ns)
             out_dev: list[int | None] = list(devs)
         else:
@@ -153,10 +170,7 @@ class ClockSync:
             p = self._period_ns
             devs = [int(round((c0 + i) * p)) for i in range(n)]
             out_dev = [None] * n
-        if n == 0:
-            return [], []
-        dev_last = devs[-1]
-        self._observe(dev_last, t_host_ns)
+        self._observe(devs[-1], t_host_ns)
         rate = 1.0 + self._b
         base = self._x0 + self._y0 + self._a
         bus: list[int] = []
@@ -172,6 +186,65 @@ class ClockSync:
             last = b
         self._last_bus = last
         return out_dev, bus
+
+    def stamp_many(self, t_host_ns: np.ndarray, chunk_of: np.ndarray,
+                   ticks: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """``stamp`` for many chunks at once, bit-identical to calling it chunk by chunk.
+
+        Args:
+            t_host_ns: int64 arrival time of each chunk (chunks without readings are allowed).
+            chunk_of: int64 chunk index of each reading, non-decreasing.
+            ticks: int64 raw device ticks of each reading, or ``None`` without a device clock.
+
+        Returns:
+            ``(t_device_ns or None, t_bus_ns, epoch of each reading)``.
+        """
+        t_host_ns = np.asarray(t_host_ns, np.int64)
+        chunk_of = np.asarray(chunk_of, np.int64)
+        n = chunk_of.shape[0]
+        if n == 0:
+            e = np.empty(0, np.int64)
+            return (None if ticks is None else e), e, e
+        # chunks that carry readings, and the index of each one's last reading
+        brk = np.empty(n, bool)
+        brk[:-1] = chunk_of[1:] != chunk_of[:-1]
+        brk[-1] = True
+        last_idx = np.flatnonzero(brk)
+        first_idx = np.empty_like(last_idx)
+        first_idx[0] = 0
+        first_idx[1:] = last_idx[:-1] + 1
+        hosts = t_host_ns[chunk_of[last_idx]]
+        if ticks is not None:
+            if self.pseudo:
+                raise ValueError(f"{self.stream}: device ticks given to a stream declared without a device clock")
+            devs = self._unwrap_many(np.asarray(ticks, np.int64), first_idx, hosts)
+            out_dev: np.ndarray | None = devs
+        elif self.spec is None:
+            bus = np.empty(n, np.int64)
+            for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist()):
+                bus[f:l_ + 1] = self._irregular(h, l_ - f + 1)
+            return None, bus, np.full(n, self.epoch, np.int64)
+        else:
+            c0 = self._counter
+            self._counter += n
+            devs = np.round((c0 + np.arange(n, dtype=np.int64)).astype(np.float64) * self._period_ns).astype(np.int64)
+            out_dev = None
+        bus = np.empty(n, np.int64)
+        epochs = np.empty(n, np.int64)
+        pts_dev = devs[last_idx]
+        m = len(last_idx)
+        i = 0
+        while i < m:
+            if self._new_epoch_pending:
+                self._scalar_chunk(i, devs, first_idx, last_idx, hosts, bus, epochs)
+                i += 1
+                continue
+            r = self._vector_segment(i, devs, pts_dev, first_idx, last_idx, hosts, bus, epochs)
+            if r < m:
+                self._scalar_chunk(r, devs, first_idx, last_idx, hosts, bus, epochs)
+                r += 1
+            i = r
+        return out_dev, bus, epochs
 
     def state(self, t_host_ns: int) -> ClockState | None:
         """The current fit, or ``None`` before the first reading."""
@@ -207,20 +280,141 @@ class ClockSync:
             raw = int(raw)
             if self._last_raw is not None and wrap:
                 step = raw - self._last_raw
-                if i == 0 and self.epoch >= 0:
-                    expected = (t_host_ns - self._last_host) / npt
-                    expected = max(0.0, expected - self._delay_hi / npt)
-                else:
-                    expected = 0.0
+                expected = (t_host_ns - self._last_host) / npt if i == 0 and self.epoch >= 0 else 0.0
                 k = round((expected - step) / wrap)
                 if k > 0:
                     self._wraps += k
-                elif step < -wrap // 2:
-                    self._wraps += 1
             self._last_raw = raw
             total = raw + self._wraps * wrap if wrap else raw
             out.append(int(round(total * npt)))
         return out
+
+    def _unwrap_many(self, raw: np.ndarray, first_idx: np.ndarray, hosts: np.ndarray) -> np.ndarray:
+        wrap = self._wrap
+        npt = self._ns_per_tick
+        if wrap:
+            prev = np.empty_like(raw)
+            prev[1:] = raw[:-1]
+            prev[0] = raw[0] if self._last_raw is None else self._last_raw
+            step = raw - prev
+            expected = np.zeros(raw.shape[0], np.float64)
+            prev_host = np.empty_like(hosts)
+            prev_host[1:] = hosts[:-1]
+            prev_host[0] = self._last_host
+            exp_first = (hosts - prev_host) / npt
+            if self.epoch < 0:
+                exp_first[0] = 0.0
+            expected[first_idx] = exp_first
+            k = np.round((expected - step) / wrap).astype(np.int64)
+            k[k < 0] = 0
+            if self._last_raw is None:
+                k[0] = 0
+            wraps = self._wraps + np.cumsum(k)
+            self._wraps = int(wraps[-1])
+            total = raw + wraps * wrap
+        else:
+            total = raw
+        self._last_raw = int(raw[-1])
+        return np.round(total.astype(np.float64) * npt).astype(np.int64)
+
+    def _scalar_chunk(self, c: int, devs: np.ndarray, first_idx: np.ndarray, last_idx: np.ndarray,
+                      hosts: np.ndarray, bus: np.ndarray, epochs: np.ndarray) -> None:
+        f, l_ = int(first_idx[c]), int(last_idx[c])
+        host = int(hosts[c])
+        dl = devs[f:l_ + 1].tolist()
+        self._observe(dl[-1], host)
+        rate = 1.0 + self._b
+        base = self._x0 + self._y0 + self._a
+        last = self._last_bus
+        x0 = self._x0
+        for j, d in enumerate(dl):
+            b = int(base + (d - x0) * rate)
+            if b > host:
+                b = host
+            if b < last:
+                b = last
+            bus[f + j] = b
+            last = b
+        self._last_bus = last
+        epochs[f:l_ + 1] = self.epoch
+
+    def _vector_segment(self, i: int, devs: np.ndarray, pts_dev: np.ndarray, first_idx: np.ndarray,
+                        last_idx: np.ndarray, hosts: np.ndarray, bus: np.ndarray, epochs: np.ndarray) -> int:
+        """Observe chunk points i.. until the first that resets or refits; returns its index.
+
+        Looks ahead at most ``_LOOKAHEAD`` points: a prefix with no stopping point is processed
+        exactly as the per-point code would, so the caller just continues after it.
+        """
+        d = pts_dev[i:i + _LOOKAHEAD]
+        h = hosts[i:i + _LOOKAHEAD]
+        x0, y0, b = self._x0, self._y0, self._b
+        xi = d - x0
+        x = xi.astype(np.float64)
+        y = (h - d - y0).astype(np.float64)
+        cand = np.empty(x.size + 1)
+        cand[0] = self._a
+        np.subtract(y, b * x, out=cand[1:])
+        a_all = np.minimum.accumulate(cand)
+        a_before = a_all[:-1]
+        a_after = a_all[1:]
+        s0 = float(x0 + y0)
+        pred = ((s0 + a_before) + x * (1.0 + b)).astype(np.int64)
+        delay = h - pred
+        prev = np.empty_like(d)
+        prev[0] = self._last_dev
+        prev[1:] = d[:-1]
+        stop = (d < prev) | (delay < -self._tol_ns) | (delay > self._tol_ns)
+        if self.pseudo:
+            stop |= delay > self._gap_ns + 2 * self._delay_hi
+        stop |= (x - self._last_refit_x) >= self._refit_ns
+        hit = np.flatnonzero(stop)
+        k = int(hit[0]) if hit.size else len(d)
+        if k == 0:
+            return i
+        xs, ys = x[:k], y[:k]
+        # bins: the same updates the per-point code makes
+        bins = np.floor_divide(xs, self._bin_ns).astype(np.int64)
+        cuts = np.flatnonzero(bins[1:] != bins[:-1]) + 1
+        bounds = [0, *cuts.tolist(), k]
+        for s_, e_ in zip(bounds[:-1], bounds[1:]):
+            seg_y = ys[s_:e_]
+            jmin = s_ + int(np.argmin(seg_y))
+            jmax = s_ + int(np.argmax(seg_y))
+            bi = int(bins[s_])
+            if bi != self._bin:
+                self._mins.append(self._bin_min)
+                self._maxs.append(self._bin_max)
+                self._bin = bi
+                self._bin_min = (float(xs[s_]), float(ys[s_]))
+                self._bin_max = (float(xs[s_]), float(ys[s_]))
+                if jmin != s_ and ys[jmin] < self._bin_min[1]:
+                    self._bin_min = (float(xs[jmin]), float(ys[jmin]))
+                if jmax != s_ and ys[jmax] > self._bin_max[1]:
+                    self._bin_max = (float(xs[jmax]), float(ys[jmax]))
+            else:
+                if ys[jmin] < self._bin_min[1]:
+                    self._bin_min = (float(xs[jmin]), float(ys[jmin]))
+                if ys[jmax] > self._bin_max[1]:
+                    self._bin_max = (float(xs[jmax]), float(ys[jmax]))
+        a_new = float(a_after[k - 1])
+        if a_new < self._a:
+            self._state_dirty = True
+        self._a = a_new
+        self.points += k
+        self._last_dev = int(d[k - 1])
+        self._last_host = int(h[k - 1])
+        # bus times of the readings of these chunks
+        f, l_ = int(first_idx[i]), int(last_idx[i + k - 1])
+        rc = np.repeat(np.arange(k), last_idx[i:i + k] - first_idx[i:i + k] + 1)
+        base = s0 + a_after[rc]
+        raw = (base + (devs[f:l_ + 1] - x0).astype(np.float64) * (1.0 + b)).astype(np.int64)
+        np.minimum(raw, h[rc], out=raw)
+        raw[0] = max(raw[0], self._last_bus)
+        out = np.maximum.accumulate(raw)
+        bus[f:l_ + 1] = out
+        self._last_bus = int(out[-1])
+        epochs[f:l_ + 1] = self.epoch
+        return i + k
 
     def _observe(self, dev: int, host: int) -> None:
         if self._new_epoch_pending:
@@ -242,21 +436,25 @@ class ClockSync:
         self._last_dev = dev
         x = float(dev - self._x0)
         y = float(host - dev - self._y0)
-        line = self._a + self._b * x
-        d = y - line
-        if d < 0:
-            self._a += d  # the line was above a real point: move it down now
+        cand = y - self._b * x
+        if cand < self._a:
+            self._a = cand  # the line was above a real point: move it down now
             self._state_dirty = True
+        bi = int(x // self._bin_ns)
+        if bi != self._bin:
+            self._mins.append(self._bin_min)
+            self._maxs.append(self._bin_max)
+            self._bin = bi
+            self._bin_min = (x, y)
+            self._bin_max = (x, y)
+        elif self.points == 1:
+            self._bin_min = (x, y)
+            self._bin_max = (x, y)
         else:
-            self._delay_hi = max(d, self._delay_hi * 0.999)
-        b = int(x // self._bin_ns)
-        if b != self._bin:
-            if self.points > 1:
-                self._mins.append(self._bin_min)
-            self._bin = b
-            self._bin_min = (x, y)
-        elif self.points == 1 or y < self._bin_min[1]:
-            self._bin_min = (x, y)
+            if y < self._bin_min[1]:
+                self._bin_min = (x, y)
+            if y > self._bin_max[1]:
+                self._bin_max = (x, y)
         if x - self._last_refit_x >= self._refit_ns:
             self._refit()
             self._last_refit_x = x
@@ -267,11 +465,8 @@ class ClockSync:
         xs = [p[0] for p in pts]
         ys = [p[1] for p in pts]
         if len(pts) < 3 or xs[-1] - xs[0] < 1e9:
-            a, b = min(ys), 0.0
-            # keep the drift already learned, if any, while the window is short
-            if self._b != 0.0:
-                b = self._b
-                a = min(y - b * x for x, y in zip(xs, ys))
+            b = self._b
+            a = min(y - b * x for x, y in zip(xs, ys))
         else:
             hull = lower_hull(xs, ys)
             xref = sum(xs) / len(xs)
@@ -282,4 +477,10 @@ class ClockSync:
             b = (ys[i1] - ys[i0]) / (xs[i1] - xs[i0])
             a = ys[i0] - b * xs[i0]
         self._a, self._b = a, b
+        hi = 0.0
+        for x, y in (*self._maxs, self._bin_max):
+            d = y - (a + b * x)
+            if d > hi:
+                hi = d
+        self._delay_hi = hi
         self._state_dirty = True

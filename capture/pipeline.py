@@ -11,11 +11,11 @@ from typing import Any, Callable, Sequence
 
 from capture.bus import Overflow, SampleBus, Subscriber
 from capture.clock import MONOTONIC, Clock
-from capture.errors import ConfigError
+from capture.errors import CaptureError, ConfigError, EndOfStream
 from capture.recorder import SessionRecorder
 from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
 from capture.session import SessionWriter
-from devices import Device, DeviceReader, DeviceSpec, ReconnectPolicy, open_device
+from devices import Device, DeviceReader, DeviceSpec, DeviceState, ReconnectPolicy, open_device
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +182,66 @@ class Capture:
                     on_tick(self, elapsed)
                     next_tick += tick_s
         finally:
+            report = self.stop()
+        return report
+
+    def run_offline(self, window_s: float = 5.0, stop: threading.Event | None = None,
+                    on_tick: Callable[[Capture, float], None] | None = None) -> CaptureReport:
+        """Drive every device from this thread, as fast as their sources allow, merging them by
+        recorded time in ``window_s`` steps: deterministic order on the bus, no reader threads.
+        Every device's transport must offer ``read_many(timeout, max_chunks, until_ns)`` (as an
+        as-fast-as-possible ``replay://`` does).
+
+        Raises:
+            ConfigError: a device's transport cannot be driven this way.
+        """
+        for d in self.devices:
+            if not getattr(d.transport, "batches", False):
+                raise ConfigError(f"device {d.name}: its transport cannot be driven offline")
+        self._t_start = self.clock.now_ns()
+        publish_many = self.bus.publish_many
+        active: list[Device] = []
+        try:
+            for d in self.devices:
+                try:
+                    publish_many(d.open())
+                except EndOfStream:
+                    d.state = DeviceState.FINISHED
+                    self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(), "empty"))
+                    continue
+                self.bus.publish(DeviceEvent(d.name, EventKind.STREAMING, self.clock.now_ns()))
+                active.append(d)
+            firsts = [t for t in (d.transport.first_time_ns() for d in active) if t is not None]  # type: ignore[attr-defined]
+            step = int(window_s * 1e9)
+            edge = (min(firsts) if firsts else 0) + step
+            ticks = 0
+            while active and not (stop is not None and stop.is_set()):
+                for d in list(active):
+                    try:
+                        while True:
+                            chunks = d.transport.read_many(0.0, 1 << 20, edge)  # type: ignore[attr-defined]
+                            if not len(chunks):
+                                break
+                            publish_many(d.process_chunks(chunks))
+                    except EndOfStream:
+                        d.state = DeviceState.FINISHED
+                        self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(),
+                                                     "source exhausted"))
+                        active.remove(d)
+                edge += step
+                ticks += 1
+                if on_tick and ticks % 20 == 0:
+                    on_tick(self, (self.clock.now_ns() - self._t_start) / 1e9)
+        except CaptureError as exc:
+            log.error("offline replay stopped: %s", exc)
+            raise
+        finally:
+            for d in self.devices:
+                try:
+                    d.close()
+                except CaptureError:
+                    pass
+                self.bus.publish_many(d.clock_states())
             report = self.stop()
         return report
 

@@ -8,7 +8,6 @@ module only builds the URLs, so production code still never imports ``sim_device
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -18,7 +17,9 @@ from capture.bus import Overflow, Subscriber
 from capture.clock import MONOTONIC, Clock
 from capture.errors import SessionError
 from capture.pipeline import Capture, CaptureReport
-from capture.sample import NO_TIME, Sample, SampleBatch
+import numpy as np
+
+from capture.sample import Sample, SampleBatch
 from capture.session import SessionReader
 
 log = logging.getLogger(__name__)
@@ -27,8 +28,8 @@ log = logging.getLogger(__name__)
 class ReplayVerifier(Subscriber):
     """Compares replayed samples with the recorded ones, stream by stream, on the first pass.
 
-    Values must be identical (NaN equals NaN), and so must the sequence number, device time and
-    bus time; host times too when the replay keeps recorded stamps.
+    Values must be bit-identical, and so must the sequence number, device time and bus time; host
+    times too when the replay keeps recorded stamps. Batches are compared as whole columns.
     """
 
     accepts = frozenset({Sample, SampleBatch})
@@ -40,32 +41,40 @@ class ReplayVerifier(Subscriber):
         self.mismatches: dict[str, int] = {s: 0 for s in recorded}
         self.first_mismatch: dict[str, str] = {}
         self.unexpected: dict[str, int] = {}
-        self._cols = {s: (b.seq.tolist(), b.t_host_ns.tolist(), b.t_device_ns.tolist(), b.t_bus_ns.tolist(),
-                          b.values.tolist()) for s, b in recorded.items()}
+        self._bits = {s: np.ascontiguousarray(b.values).view(np.int64) for s, b in recorded.items()}
 
     def on_item(self, item: Any) -> None:
-        for s in (item,) if type(item) is Sample else item.samples():
-            self._check(s)
-
-    def _check(self, s: Sample) -> None:
-        cols = self._cols.get(s.stream)
-        if cols is None:
-            self.unexpected[s.stream] = self.unexpected.get(s.stream, 0) + 1
+        rec = self.recorded.get(item.stream)
+        if rec is None:
+            self.unexpected[item.stream] = self.unexpected.get(item.stream, 0) + (1 if type(item) is Sample else len(item))
             return
-        i = self.compared[s.stream]
-        if i >= len(cols[0]):
+        if type(item) is Sample:
+            item = SampleBatch.from_samples(item.stream, [item], rec.values.shape[1] if rec.values.ndim == 2 else 0)
+        i = self.compared[item.stream]
+        n = min(len(item), len(rec) - i)
+        if n <= 0:
             return  # later loop passes, or readings past a truncated recording's last block
-        self.compared[s.stream] = i + 1
-        seq, th, td, tb, vals = (c[i] for c in cols)
-        dev = NO_TIME if s.t_device_ns is None else s.t_device_ns
-        same = (s.seq == seq and dev == td and s.t_bus_ns == tb and (not self.check_host or s.t_host_ns == th)
-                and len(s.values) == len(vals)
-                and all(a == b or (math.isnan(a) and math.isnan(b)) for a, b in zip(s.values, vals)))
-        if not same:
-            self.mismatches[s.stream] += 1
-            if s.stream not in self.first_mismatch:
-                self.first_mismatch[s.stream] = (f"seq {s.seq}: replayed {s} but recorded seq={seq} host={th} "
-                                                 f"device={td} bus={tb} values={tuple(vals)}")
+        self.compared[item.stream] = i + n
+        sl = slice(i, i + n)
+        ok = (item.seq[:n] == rec.seq[sl]) & (item.t_device_ns[:n] == rec.t_device_ns[sl]) \
+            & (item.t_bus_ns[:n] == rec.t_bus_ns[sl])
+        if self.check_host:
+            ok &= item.t_host_ns[:n] == rec.t_host_ns[sl]
+        vals = np.ascontiguousarray(item.values[:n])
+        if vals.shape[1:] != rec.values.shape[1:]:
+            ok[:] = False
+        else:
+            ok &= np.all(vals.view(np.int64) == self._bits[item.stream][sl], axis=1)
+        bad = np.flatnonzero(~ok)
+        if bad.size:
+            self.mismatches[item.stream] += int(bad.size)
+            if item.stream not in self.first_mismatch:
+                j = int(bad[0])
+                self.first_mismatch[item.stream] = (
+                    f"seq {int(item.seq[j])}: replayed host={int(item.t_host_ns[j])} device={int(item.t_device_ns[j])} "
+                    f"bus={int(item.t_bus_ns[j])} values={tuple(item.values[j].tolist())} but recorded "
+                    f"seq={int(rec.seq[i + j])} host={int(rec.t_host_ns[i + j])} device={int(rec.t_device_ns[i + j])} "
+                    f"bus={int(rec.t_bus_ns[i + j])} values={tuple(rec.values[i + j].tolist())}")
 
     def result(self) -> dict[str, Any]:
         per = {}
@@ -130,7 +139,10 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
         cap.subscribe(verifier, Overflow.NEVER_DROP, "verifier")
     for sub, pol in subscribers or []:
         cap.subscribe(sub, pol)
-    report = cap.run(duration_s, stop=stop, on_tick=on_tick)
+    if speed == 0 and not loop and duration_s is None:
+        report = cap.run_offline(stop=stop, on_tick=on_tick)
+    else:
+        report = cap.run(duration_s, stop=stop, on_tick=on_tick)
     lateness: list[int] = []
     for d in cap.devices:
         lateness.extend(getattr(d.transport, "lateness_ns", []))

@@ -18,6 +18,7 @@ from capture.sample import (
     Chunk,
     ClockState,
     DeviceChunk,
+    DeviceChunks,
     DeviceEvent,
     DeviceIdentity,
     Sample,
@@ -89,11 +90,14 @@ class SessionRecorder(Subscriber):
                 if item.stream not in self._channels:
                     self._undeclared(item)
             lst.append(item)
-        elif t is DeviceChunk:
+        elif t is DeviceChunk or t is DeviceChunks:
             lst2 = self._raw.get(item.device)
             if lst2 is None:
                 lst2 = self._raw[item.device] = []
-            lst2.append(item.chunk)
+            if t is DeviceChunk:
+                lst2.append(item.chunk)
+            else:
+                lst2 += item.chunks
         else:
             self._ctrl.append(item)
         now = self.clock.now_ns()

@@ -184,6 +184,70 @@ class DeviceChunk(NamedTuple):
     chunk: Chunk
 
 
+class ChunkRun:
+    """Many chunks as columns: their bytes concatenated, their lengths, arrival times and directions.
+
+    Offline replay hands these to devices so that a whole run is decoded with numpy, without one
+    Python object per chunk; ``run[i]`` and iteration give ordinary ``Chunk``s when needed.
+    """
+
+    __slots__ = ("data", "lengths", "t_ns", "directions", "_offsets")
+
+    def __init__(self, data: bytes, lengths: np.ndarray, t_ns: np.ndarray, directions: np.ndarray) -> None:
+        self.data = data
+        self.lengths = lengths
+        self.t_ns = t_ns
+        self.directions = directions
+        self._offsets: np.ndarray | None = None
+
+    @classmethod
+    def from_chunks(cls, chunks: list[Chunk]) -> ChunkRun:
+        n = len(chunks)
+        return cls(b"".join(c.data for c in chunks), np.fromiter((len(c.data) for c in chunks), np.int64, n),
+                   np.fromiter((c.t_ns for c in chunks), np.int64, n),
+                   np.fromiter((int(c.direction) for c in chunks), np.uint8, n))
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """Start offset of each chunk in ``data``, plus the total at the end."""
+        if self._offsets is None:
+            o = np.zeros(len(self.lengths) + 1, np.int64)
+            np.cumsum(self.lengths, out=o[1:])
+            self._offsets = o
+        return self._offsets
+
+    @property
+    def all_rx(self) -> bool:
+        return not bool(self.directions.any())
+
+    def __len__(self) -> int:
+        return int(self.lengths.shape[0])
+
+    def __getitem__(self, i: int) -> Chunk:
+        o = self.offsets
+        return Chunk(self.data[o[i]:o[i + 1]], int(self.t_ns[i]), Direction(int(self.directions[i])))
+
+    def slice(self, start: int, stop: int) -> ChunkRun:
+        o = self.offsets
+        stop = min(stop, len(self))
+        return ChunkRun(self.data[o[start]:o[stop]], self.lengths[start:stop], self.t_ns[start:stop],
+                        self.directions[start:stop])
+
+    def __iter__(self) -> Iterator[Chunk]:
+        o = self.offsets.tolist()
+        d = self.data
+        dirs = (Direction.RX, Direction.TX)
+        for i, (t, dr) in enumerate(zip(self.t_ns.tolist(), self.directions.tolist())):
+            yield Chunk(d[o[i]:o[i + 1]], t, dirs[dr])
+
+
+class DeviceChunks(NamedTuple):
+    """Many raw chunks of one device at once (the batch decoding path publishes these)."""
+
+    device: str
+    chunks: ChunkRun
+
+
 class ClockState(NamedTuple):
     """A device-to-host clock fit at one moment: ``bus = host_ref + (device - device_ref) * rate``."""
 
@@ -234,4 +298,4 @@ class DeviceEvent(NamedTuple):
 
 
 #: Everything the bus carries.
-BusItem = Sample | SampleBatch | DeviceChunk | ClockState | DeviceEvent
+BusItem = Sample | SampleBatch | DeviceChunk | DeviceChunks | ClockState | DeviceEvent

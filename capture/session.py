@@ -32,7 +32,7 @@ from typing import Any, BinaryIO, Iterator
 import numpy as np
 
 from capture.errors import SessionError, SessionExistsError
-from capture.sample import NO_TIME, Chunk, ClockState, DeviceEvent, Direction, SampleBatch, StreamInfo
+from capture.sample import NO_TIME, Chunk, ChunkRun, ClockState, DeviceEvent, Direction, SampleBatch, StreamInfo
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,34 @@ def encode_raw_block(chunks: list[Chunk]) -> bytes:
                      *[c.data for c in chunks]])
 
 
+def decode_raw_block_run(data: bytes) -> ChunkRun:
+    """A raw block as a ``ChunkRun`` (no per-chunk objects)."""
+    data = bytes(data)
+    mv = memoryview(data)
+    (n,) = _hdr_raw.unpack_from(mv, 0)
+    o = _hdr_raw.size
+    t = _undelta(mv[o:o + 8 * n], n)
+    o += 8 * n
+    dirs = np.frombuffer(mv[o:o + n], np.uint8).copy()
+    o += n
+    lens = np.frombuffer(mv[o:o + 4 * n], "<u4").astype(np.int64)
+    o += 4 * n
+    if int(lens.sum()) != len(data) - o:
+        raise ValueError(f"raw block length mismatch ({int(lens.sum())} != {len(data) - o})")
+    if n and int(dirs.max()) > 1:
+        raise ValueError("raw block has an unknown direction")
+    return ChunkRun(data[o:], lens, t, dirs)
+
+
+def concat_runs(runs: list[ChunkRun]) -> ChunkRun:
+    if len(runs) == 1:
+        return runs[0]
+    return ChunkRun(b"".join(r.data for r in runs), np.concatenate([r.lengths for r in runs]),
+                    np.concatenate([r.t_ns for r in runs]), np.concatenate([r.directions for r in runs]))
+
+
 def decode_raw_block(data: bytes) -> list[Chunk]:
+    data = bytes(data)
     mv = memoryview(data)
     (n,) = _hdr_raw.unpack_from(mv, 0)
     o = _hdr_raw.size
@@ -91,12 +118,25 @@ def decode_raw_block(data: bytes) -> list[Chunk]:
     o += 4 * n
     out = []
     tl = t.tolist()
+    dl = dirs.tolist()
+    if max(dl, default=0) > 1:
+        raise ValueError("raw block has an unknown direction")
     for i, ln in enumerate(lens.tolist()):
-        out.append(Chunk(bytes(mv[o:o + ln]), tl[i], Direction(int(dirs[i]))))
+        out.append(Chunk(data[o:o + ln], tl[i], _DIRECTIONS[dl[i]]))
         o += ln
     if o != len(data):
         raise ValueError(f"raw block length mismatch ({o} != {len(data)})")
     return out
+
+
+_DIRECTIONS = (Direction.RX, Direction.TX)
+
+
+def raw_block_span(data: bytes) -> tuple[int, int]:
+    """First and last chunk times of a raw block, without decoding the chunks."""
+    (n,) = _hdr_raw.unpack_from(data, 0)
+    t = _undelta(memoryview(data)[_hdr_raw.size:_hdr_raw.size + 8 * n], n)
+    return int(t[0]), int(t[-1])
 
 
 _q = struct.Struct("<Bd")
@@ -457,11 +497,19 @@ class SessionReader:
         for data in self._msgs.get(f"/raw/{device}", ()):
             yield from decode_raw_block(data)
 
+    def raw_run(self, device: str) -> ChunkRun:
+        """Every recorded chunk of a device as one ``ChunkRun``."""
+        blocks = self._msgs.get(f"/raw/{device}", [])
+        if not blocks:
+            e = np.empty(0, np.int64)
+            return ChunkRun(b"", e, e.copy(), np.empty(0, np.uint8))
+        return concat_runs([decode_raw_block_run(b) for b in blocks])
+
     def first_and_last_chunk_ns(self, device: str) -> tuple[int, int] | None:
         blocks = self._msgs.get(f"/raw/{device}")
         if not blocks:
             return None
-        return decode_raw_block(blocks[0])[0].t_ns, decode_raw_block(blocks[-1])[-1].t_ns
+        return raw_block_span(blocks[0])[0], raw_block_span(blocks[-1])[1]
 
     def sample_blocks(self, streams: set[str] | None = None) -> Iterator[SampleBatch]:
         for topic, blocks in self._msgs.items():

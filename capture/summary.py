@@ -43,6 +43,8 @@ def summarize(reader: SessionReader) -> dict[str, Any]:
         c["drift_ppm"] = round(st["drift_ppm"], 2)
         c["epochs"] = st["epoch"] + 1
         c["pseudo"] = st["pseudo"]
+    for st in streams:  # a device clock is shared by the device's streams; a pseudo clock is per stream
+        st["clock"] = clocks.get(st["name"]) or clocks.get(st["device"]) or None
     events = reader.events()
     kinds: dict[str, int] = {}
     for e in events:

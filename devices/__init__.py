@@ -12,6 +12,7 @@ replays do). ``NAME`` defaults to the kind plus a number.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import re
 from dataclasses import dataclass, field
@@ -34,8 +35,13 @@ _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 _KIND_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
+@functools.lru_cache(maxsize=1)
+def _device_entry_points() -> dict[str, Any]:
+    return {ep.name: ep for ep in entry_points(group="perfcap.devices")}
+
+
 def known_kinds() -> list[str]:
-    return sorted(set(DEVICE_TYPES) | {ep.name for ep in entry_points(group="perfcap.devices")})
+    return sorted(set(DEVICE_TYPES) | set(_device_entry_points()))
 
 
 def device_class(kind: str) -> type[Device]:
@@ -48,9 +54,9 @@ def device_class(kind: str) -> type[Device]:
         if kind in DEVICE_TYPES:
             mod, cls = DEVICE_TYPES[kind]
             return getattr(importlib.import_module(mod), cls)  # type: ignore[no-any-return]
-        for ep in entry_points(group="perfcap.devices"):
-            if ep.name == kind:
-                return ep.load()  # type: ignore[no-any-return]
+        ep = _device_entry_points().get(kind)
+        if ep is not None:
+            return ep.load()  # type: ignore[no-any-return]
     except ImportError as exc:
         raise DeviceUnavailableError(f"device kind {kind!r} cannot be loaded: {exc}", source=kind) from exc
     raise DeviceUnavailableError(f"unknown device kind {kind!r}; known kinds: {', '.join(known_kinds())}",

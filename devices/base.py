@@ -16,18 +16,24 @@ import threading
 from dataclasses import dataclass
 from typing import Any, ClassVar, Iterable, Mapping, NamedTuple
 
+import numpy as np
+
 from capture.bus import SampleBus
 from capture.clock import MONOTONIC, Clock
 from capture.clocksync import ClockSync
 from capture.errors import CaptureError, DeviceError, EndOfStream, ProtocolError
 from capture.sample import (
+    NO_TIME,
     Chunk,
+    ChunkRun,
     DeviceChunk,
+    DeviceChunks,
     DeviceEvent,
     DeviceIdentity,
     Direction,
     EventKind,
     Sample,
+    SampleBatch,
     StreamInfo,
 )
 from devices.codecs.base import Codec
@@ -97,10 +103,10 @@ class Device(abc.ABC):
         self.identity = DeviceIdentity(kind=self.kind, name=name, url=transport.url)
         self.streams: list[StreamInfo] = self.declare_streams()
         self._seq = [0] * len(self.streams)
-        self._syncs = [ClockSync(s.name, s.clock, s.nominal_rate_hz) for s in self.streams]
+        self._build_domains()
         self._last_ticks: list[int | None] = [None] * len(self.streams)
         self._last_dev: list[int | None] = [None] * len(self.streams)
-        self._epochs = [-1] * len(self.streams)
+        self._epochs = [-1] * len(self.streams)  # clock epoch each stream last saw
         self._reported_errors = 0
 
     # -- what subclasses provide -----------------------------------------------------------------
@@ -159,17 +165,46 @@ class Device(abc.ABC):
                 self.state = DeviceState.CLOSED
 
     def poll(self, timeout: float) -> list[Any]:
-        """Read one chunk and return the bus items it yields (raw chunk first, then samples, clock states).
+        """Read from the transport and return the bus items it yields (raw chunks first, then
+        samples, events and clock states). Transports that can hand over many chunks at once
+        (an as-fast-as-possible replay) are read in batches and decoded with ``process_chunks``.
 
         Raises:
             DeviceIOError: the transport failed.
             EndOfStream: a finite source ended.
             ProtocolError: only in strict mode.
         """
+        read_many = getattr(self.transport, "read_many", None)
+        if read_many is not None and getattr(self.transport, "batches", False):
+            chunks = read_many(timeout, 4096)
+            return self.process_chunks(chunks) if len(chunks) else []
         chunk = self.transport.read(timeout)
         if chunk is None:
             return []
         return self.process_chunk(chunk)
+
+    # -- clock domains ---------------------------------------------------------------------------
+    def _build_domains(self) -> None:
+        """One ClockSync per device clock (streams of one device share it), one per pseudo-clocked stream."""
+        self._domains: list[ClockSync] = []
+        self._domain_of: list[int] = []
+        keys: dict[Any, int] = {}
+        for i, s in enumerate(self.streams):
+            key: Any = (s.clock, s.nominal_rate_hz) if s.clock is not None else ("stream", i)
+            if key not in keys:
+                keys[key] = len(self._domains)
+                self._domains.append(ClockSync(s.name, s.clock, s.nominal_rate_hz))
+            self._domain_of.append(keys[key])
+        shared = [d for d in self._domains if not d.pseudo]
+        if len(shared) == 1:
+            shared[0].stream = self.name
+        self._domain_epochs = [-1] * len(self._domains)
+
+    def _epoch_changed(self, d: int, epoch: int, t: int, out: list[Any]) -> None:
+        self._domain_epochs[d] = epoch
+        if epoch > 0:
+            out.append(DeviceEvent(self.name, EventKind.CLOCK_RESET, t,
+                                   f"{self._domains[d].stream}: clock epoch {epoch}"))
 
     def process_chunk(self, chunk: Chunk) -> list[Any]:
         """Decode one chunk (from the live transport or a recorded session) into bus items."""
@@ -188,43 +223,186 @@ class Device(abc.ABC):
         if not frames:
             return out
         groups: dict[int, list[Reading]] = {}
+        order: list[tuple[int, int]] = []
         for f in frames:
             for r in self.frame_to_readings(f):
-                groups.setdefault(r.stream, []).append(r)
+                g = groups.get(r.stream)
+                if g is None:
+                    g = groups[r.stream] = []
+                order.append((r.stream, len(g)))
+                g.append(r)
         t = chunk.t_ns
+        times: dict[int, tuple[list[int | None], list[int]]] = {}
+        # device-clocked streams: one stamp per clock domain, readings in emission order
+        ticks_by: dict[int, list[int]] = {si: self._ticks_of(si, rs) for si, rs in groups.items()
+                                          if self.streams[si].clock is not None}
+        touched: list[int] = []
+        for d in sorted({self._domain_of[si] for si in ticks_by}):
+            sel = [(si, j) for si, j in order if self._domain_of[si] == d]
+            devs, bus = self._domains[d].stamp(t, [ticks_by[si][j] for si, j in sel])
+            for (si, j), dv, b in zip(sel, devs, bus):
+                tl = times.get(si)
+                if tl is None:
+                    tl = times[si] = ([], [])
+                tl[0].append(dv)
+                tl[1].append(b)
+            touched.append(d)
         for si, rs in groups.items():
+            if self.streams[si].clock is None:
+                d = self._domain_of[si]
+                times[si] = self._domains[d].stamp(t, None, len(rs))
+                touched.append(d)
+        for d in touched:
+            if self._domains[d].epoch != self._domain_epochs[d]:
+                self._epoch_changed(d, self._domains[d].epoch, t, out)
+        for si, rs in groups.items():
+            devs, bus = times[si]
             info = self.streams[si]
-            sync = self._syncs[si]
-            if info.clock is None:
-                devs, bus = sync.stamp(t, None, len(rs))
-            else:
-                ticks = self._ticks_of(si, rs)
-                devs, bus = sync.stamp(t, ticks)
             seq = self._seq[si]
             name = info.name
             period = 1e9 / info.nominal_rate_hz if info.nominal_rate_hz else 0.0
-            if sync.epoch != self._epochs[si]:
-                self._epochs[si] = sync.epoch
+            ep = self._domains[self._domain_of[si]].epoch
+            if ep != self._epochs[si]:
+                self._epochs[si] = ep
                 self._last_dev[si] = None
-                if sync.epoch > 0:
-                    out.append(DeviceEvent(self.name, EventKind.CLOCK_RESET, t, f"{name}: clock epoch {sync.epoch}"))
             last_dev = self._last_dev[si]
-            for r, d, b in zip(rs, devs, bus):
-                if d is not None and period:
+            for r, dv, b in zip(rs, devs, bus):
+                if dv is not None and period:
                     # A device-time step of k periods means k-1 readings were lost before the host:
                     # leave a gap of that size in the sequence numbers.
                     if last_dev is not None:
-                        k = round((d - last_dev) / period)
+                        k = round((dv - last_dev) / period)
                         if 1 < k < 10_000:
                             seq += k - 1
                             st.lost_readings += k - 1
-                    last_dev = d
-                out.append(Sample(name, seq, t, d, b, r.values))
+                    last_dev = dv
+                out.append(Sample(name, seq, t, dv, b, r.values))
                 seq += 1
             self._last_dev[si] = last_dev
             self._seq[si] = seq
             st.readings += len(rs)
-            cs = sync.pop_state(t)
+        for d in touched:
+            cs = self._domains[d].pop_state(t)
+            if cs is not None:
+                out.append(cs)
+        return out
+
+    # -- batch path ------------------------------------------------------------------------------
+    def batch_ready(self) -> bool:
+        """Whether ``decode_batch`` could accept data now (cheap; e.g. the frame layout is learned)."""
+        return False
+
+    def decode_batch(self, chunks: ChunkRun) -> BatchReadings | None:
+        """Decode many RX chunks at once with numpy, or return ``None`` to use the per-chunk path.
+
+        A device that overrides this must produce exactly what ``process_chunk`` would, and leave
+        its codec and assembly state as ``process_chunk`` would have left it. The default has no
+        vectorised decoder.
+        """
+        return None
+
+    def process_chunks(self, chunks: list[Chunk] | ChunkRun) -> list[Any]:
+        """Decode many chunks into bus items: ``SampleBatch`` columns when the device has a
+        vectorised decoder and the data is clean, otherwise chunk by chunk. Either way the samples
+        are identical to what ``process_chunk`` gives."""
+        run = chunks if isinstance(chunks, ChunkRun) else ChunkRun.from_chunks(list(chunks))
+        out: list[Any] = []
+        i = 0
+        total = len(run)
+        size = total
+        dirs = run.directions
+        while i < total:
+            if not self.batch_ready() or dirs[i]:
+                out += self.process_chunk(run[i])
+                i += 1
+                continue
+            stop = min(total, i + size)
+            tx = np.flatnonzero(dirs[i:stop])
+            if tx.size:
+                stop = i + int(tx[0])
+            part = run.slice(i, stop)
+            batch = self.decode_batch(part) if len(part) > 1 else None
+            if batch is None:
+                if len(part) <= 1:
+                    out += self.process_chunk(run[i])  # a bad or partial spot: byte-exact scalar path
+                    i += 1
+                    size = total
+                else:
+                    size = max(1, len(part) // 2)
+                continue
+            out += self._emit_batch(part, batch)
+            i += len(part)
+            size = total
+        return out
+
+    def _emit_batch(self, chunks: ChunkRun, batch: BatchReadings) -> list[Any]:
+        out: list[Any] = [DeviceChunks(self.name, chunks)]
+        st = self.stats
+        st.chunks += len(chunks)
+        st.bytes += len(chunks.data)
+        hosts = chunks.t_ns
+        st.last_seen_ns = int(hosts[-1])
+        res: dict[int, tuple[np.ndarray | None, np.ndarray, np.ndarray]] = {}
+        touched: list[int] = []
+        for d in sorted({self._domain_of[si] for si in batch.streams if self.streams[si].clock is not None}):
+            members = [si for si in batch.streams if self._domain_of[si] == d]
+            emit = np.concatenate([batch.streams[si].emit for si in members])
+            order = np.argsort(emit, kind="stable")
+            chunk_of = np.concatenate([batch.streams[si].chunk for si in members])[order]
+            ticks = np.concatenate([self._ticks_many(si, batch.streams[si].ticks) for si in members])[order]
+            dev, bus, ep = self._domains[d].stamp_many(hosts, chunk_of, ticks)
+            inv = np.empty_like(order)
+            inv[order] = np.arange(order.size)
+            o = 0
+            for si in members:
+                n = batch.streams[si].chunk.size
+                idx = inv[o:o + n]
+                res[si] = (None if dev is None else dev[idx], bus[idx], ep[idx])
+                o += n
+            touched.append(d)
+        for si, sr in batch.streams.items():
+            if self.streams[si].clock is None:
+                d = self._domain_of[si]
+                res[si] = self._domains[d].stamp_many(hosts, sr.chunk, None)
+                touched.append(d)
+        for si, sr in batch.streams.items():
+            dev, bus, ep = res[si]
+            n = sr.chunk.size
+            if n == 0:
+                continue
+            info = self.streams[si]
+            dmn = self._domain_of[si]
+            # clock epochs: events, and no lost-reading gaps across a reset
+            prev_ep = np.empty_like(ep)
+            prev_ep[0] = self._epochs[si]
+            prev_ep[1:] = ep[:-1]
+            new_ep = ep != prev_ep
+            for j in np.flatnonzero(new_ep).tolist():
+                if ep[j] != self._domain_epochs[dmn]:
+                    self._epoch_changed(dmn, int(ep[j]), int(hosts[sr.chunk[j]]), out)
+            self._epochs[si] = int(ep[-1])
+            seq = self._seq[si] + np.arange(n, dtype=np.int64)
+            period = 1e9 / info.nominal_rate_hz if info.nominal_rate_hz else 0.0
+            if dev is not None and period:
+                last = self._last_dev[si]
+                prev = np.empty_like(dev)
+                prev[0] = dev[0] if last is None else last
+                prev[1:] = dev[:-1]
+                k = np.round((dev - prev) / period)
+                gaps = np.where((k > 1) & (k < 10_000), k - 1, 0).astype(np.int64)
+                gaps[new_ep] = 0
+                if last is None:
+                    gaps[0] = 0
+                seq += np.cumsum(gaps)
+                st.lost_readings += int(gaps.sum())
+                self._last_dev[si] = int(dev[-1])
+            self._seq[si] = int(seq[-1]) + 1
+            st.readings += n
+            tdev = np.full(n, NO_TIME, np.int64) if dev is None else dev
+            out.append(SampleBatch(info.name, seq, hosts[sr.chunk], tdev, bus, sr.values))
+        t_last = int(hosts[-1])
+        for d in dict.fromkeys(touched):
+            cs = self._domains[d].pop_state(t_last)
             if cs is not None:
                 out.append(cs)
         return out
@@ -252,18 +430,38 @@ class Device(abc.ABC):
         self._last_ticks[si] = last
         return out
 
+    def _ticks_many(self, si: int, ticks: np.ndarray | None) -> np.ndarray:
+        if ticks is None or ticks.size == 0:
+            raise ValueError(f"{self.streams[si].name}: a batch decoder must give ticks for a clocked stream")
+        self._last_ticks[si] = int(ticks[-1])
+        return ticks
+
     def reset_after_reconnect(self) -> int:
         """Forget partial frames after the pipe was reopened; returns bytes discarded."""
         return self.codec.reset()
 
     def clock_states(self) -> list[Any]:
         t = self.clock.now_ns()
-        return [s for s in (sync.state(t) for sync in self._syncs) if s is not None]
+        return [s for s in (sync.state(t) for sync in self._domains) if s is not None]
 
     def health(self) -> dict[str, Any]:
         """Counters for status displays and session summaries."""
         return {"state": self.state.value, **self.stats.__dict__, **self.codec.stats.as_dict(),
-                "clock_resets": sum(s.resets for s in self._syncs)}
+                "clock_resets": sum(s.resets for s in self._domains)}
+
+
+class StreamReadings(NamedTuple):
+    """Vectorised readings of one stream from ``Device.decode_batch``."""
+
+    values: np.ndarray        # float64 (n, channels)
+    ticks: np.ndarray | None  # int64 (n,) raw device ticks, or None for streams without a clock
+    chunk: np.ndarray         # int64 (n,) index of the chunk whose bytes completed each reading
+    emit: np.ndarray          # int64 (n,) emission order across the device's streams
+
+
+@dataclass
+class BatchReadings:
+    streams: dict[int, StreamReadings]
 
 
 @dataclass(frozen=True)
@@ -297,7 +495,7 @@ class DeviceReader:
 
     def stop(self, timeout: float | None = 5.0) -> None:
         self._stop.set()
-        if threading.current_thread() is not self._thread:
+        if self._thread.ident is not None and threading.current_thread() is not self._thread:
             self._thread.join(timeout)
 
     def join(self, timeout: float | None = None) -> bool:

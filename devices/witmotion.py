@@ -2,8 +2,10 @@
 
 Packets of one output cycle (time, acceleration, angular rate, angle, magnetometer, quaternion,
 whichever are enabled) are gathered into one reading per stream, all with the cycle's device time.
-The device learns which packet type closes a cycle from the first two cycles, then emits each
-cycle as soon as its last packet arrives (no added latency).
+The sensor sends a cycle's packets in increasing type order, so a type that is not larger than the
+previous one starts a new cycle. The largest type that ends a cycle is learned as the cycle's last
+packet, and from then on each cycle is emitted as soon as that packet arrives (no added latency);
+a lost last packet only delays that one cycle.
 
 Scalings (WT901 datasheet): acceleration ``raw/32768*16 g``, angular rate ``raw/32768*2000 deg/s``,
 angle ``raw/32768*180 deg``, temperature ``raw/100 degC``, quaternion ``raw/32768``; the
@@ -18,9 +20,22 @@ from __future__ import annotations
 import math
 from typing import Any, Iterable
 
-from capture.sample import DeviceClockSpec, StreamInfo
-from devices.base import Device, Reading
-from devices.codecs.witmotion import ACC, ANGLE, GYRO, MAG, QUAT, TIME, WitMotionCodec, WitPacket
+import numpy as np
+
+from capture.sample import ChunkRun, DeviceClockSpec, StreamInfo
+from devices.base import BatchReadings, Device, Reading, StreamReadings
+from devices.codecs.witmotion import (
+    ACC,
+    ANGLE,
+    GYRO,
+    HEADER,
+    MAG,
+    PACKET_LEN,
+    QUAT,
+    TIME,
+    WitMotionCodec,
+    WitPacket,
+)
 from devices.options import Option
 
 G = 9.80665
@@ -52,6 +67,7 @@ class WitMotionImu(Device):
         self._cycle: dict[int, WitPacket] = {}
         self._terminator: int | None = None
         self._order: list[int] = []
+        self._cycle_order: tuple[int, ...] | None = None  # types of the last complete cycle
         return [
             self.stream_info("imu", "imu", ("ax", "ay", "az", "gx", "gy", "gz", "temp"),
                              ("m/s^2", "m/s^2", "m/s^2", "rad/s", "rad/s", "rad/s", "degC"), rate, FRAME, clock,
@@ -67,16 +83,87 @@ class WitMotionImu(Device):
     def frame_to_readings(self, frame: WitPacket) -> Iterable[Reading]:
         t = frame.type
         out: list[Reading] = []
-        if t in self._cycle:
-            # This type repeats: the previous cycle ended with the packet before it.
-            if self._order:
-                self._terminator = self._order[-1]
+        if self._order and t <= self._order[-1]:
+            # A new cycle begins: the previous one ended with the packet before this one.
+            last = self._order[-1]
+            if self._terminator is None or last > self._terminator:
+                self._terminator = last
             out = self._emit()
         self._cycle[t] = frame
         self._order.append(t)
         if t == self._terminator:
+            self._cycle_order = tuple(self._order)
             out += self._emit()
         return out
+
+    def batch_ready(self) -> bool:
+        return self._cycle_order is not None and not self._cycle and not self._order and not self.codec.buffered
+
+    def decode_batch(self, chunks: ChunkRun) -> BatchReadings | None:
+        """Vectorised decoding of clean data: whole cycles of the learned layout, no garbage.
+        Anything else (a partial cycle pending, a bad byte, a different layout) returns ``None``
+        and the chunks take the per-chunk path."""
+        order = self._cycle_order
+        if order is None or self.codec.buffered or self._cycle or self._order:
+            return None
+        buf = chunks.data
+        n = len(buf)
+        L = len(order)
+        if n == 0 or n % (PACKET_LEN * L):
+            return None
+        a = np.frombuffer(buf, np.uint8).reshape(-1, PACKET_LEN)
+        types = a[:, 1]
+        if not (np.all(a[:, 0] == HEADER)
+                and np.array_equal(types.reshape(-1, L), np.broadcast_to(np.array(order, np.uint8), (len(a) // L, L)))
+                and np.array_equal((a[:, :10].sum(axis=1, dtype=np.uint32) & 0xFF).astype(np.uint8), a[:, 10])):
+            return None
+        clocked = self.streams[IMU].clock is not None
+        if clocked and TIME not in order:
+            return None
+        ncyc = len(a) // L
+        self.codec.stats.bytes_in += n
+        self.codec.stats.frames += len(a)
+        ends = chunks.offsets[1:]
+        term_end = (np.arange(1, ncyc + 1, dtype=np.int64) * L) * PACKET_LEN - 1
+        chunk = np.searchsorted(ends, term_end, side="right").astype(np.int64)
+        cyc = a.reshape(ncyc, L, PACKET_LEN)
+
+        def rows(t: int) -> np.ndarray | None:
+            return cyc[:, order.index(t), 2:10] if t in order else None
+
+        def words(t: int) -> np.ndarray | None:
+            r = rows(t)
+            return None if r is None else np.ascontiguousarray(r).view("<i2").reshape(ncyc, 4).astype(np.float64)
+
+        ticks = None
+        tr = rows(TIME)
+        if tr is not None and clocked:
+            f = tr.astype(np.int64)
+            ticks = ((f[:, 3] * 60 + f[:, 4]) * 60 + f[:, 5]) * 1000 + (f[:, 6] | (f[:, 7] << 8))
+        present: list[tuple[int, np.ndarray]] = []
+        acc, gyr = words(ACC), words(GYRO)
+        if acc is not None or gyr is not None:
+            v = np.full((ncyc, 7), np.nan)
+            if acc is not None:
+                v[:, 0:3] = acc[:, 0:3] * ACC_SCALE
+                v[:, 6] = acc[:, 3] * TEMP_SCALE
+            if gyr is not None:
+                v[:, 3:6] = gyr[:, 0:3] * GYRO_SCALE
+            present.append((IMU, v))
+        ang = words(ANGLE)
+        if ang is not None:
+            present.append((EULER, ang[:, 0:3] * ANGLE_SCALE))
+        mag = words(MAG)
+        if mag is not None:
+            present.append((MAGS, mag[:, 0:3].copy()))
+        q = words(QUAT)
+        if q is not None:
+            present.append((QUATS, q * QUAT_SCALE))
+        S = len(present)
+        base = np.arange(ncyc, dtype=np.int64) * S
+        out = {si: StreamReadings(v, ticks if self.streams[si].clock is not None else None, chunk, base + k)
+               for k, (si, v) in enumerate(present)}
+        return BatchReadings(out)
 
     def _emit(self) -> list[Reading]:
         c = self._cycle

@@ -16,9 +16,11 @@ import logging
 from collections import deque
 from typing import Any, Mapping
 
+import numpy as np
+
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, EndOfStream, ProtocolError, SessionError
-from capture.sample import Chunk, Direction
+from capture.sample import Chunk, ChunkRun, Direction
 from capture.session import DeviceRecord, SessionReader
 from devices.options import Option
 from devices.transports.base import Transport
@@ -77,15 +79,19 @@ class ReplayTransport(Transport):
 
     def open(self) -> None:
         if self._chunks is None:
-            try:
-                self._chunks = list(self.session.raw_chunks(self.record.name))
-            except SessionError:
-                raise
-            self._rx = [c for c in self._chunks if c.direction is Direction.RX]
-            self._tx = deque(c for c in self._chunks if c.direction is Direction.TX)
-            if not self._rx:
+            run = self.session.raw_run(self.record.name)
+            self._chunks = run
+            if run.all_rx:
+                self._rx = run
+                self._tx: deque[Chunk] = deque()
+            else:
+                every = list(run)
+                self._rx = ChunkRun.from_chunks([c for c in every if c.direction is Direction.RX])
+                self._tx = deque(c for c in every if c.direction is Direction.TX)
+            self._rx_t = self._rx.t_ns
+            if not len(self._rx):
                 raise EndOfStream(f"{self.url}: the session holds no data for {self.record.name}", source=self.url)
-            first, last = self._rx[0].t_ns, self._rx[-1].t_ns
+            first, last = int(self._rx_t[0]), int(self._rx_t[-1])
             n = len(self._rx)
             self._span = (last - first) + ((last - first) // (n - 1) if n > 1 else 1_000_000)
             self._t0 = self.opts["t0_ns"] or first
@@ -94,6 +100,12 @@ class ReplayTransport(Transport):
 
     def close(self) -> None:
         self._open = False
+
+    def first_time_ns(self) -> int | None:
+        """Recorded time of the next chunk to be read (for merging devices by time)."""
+        if self._chunks is None or self._i >= len(self._rx):
+            return None
+        return int(self._rx_t[self._i]) + self._pass * self._span
 
     def write(self, data: bytes) -> Chunk:
         if not self._open:
@@ -108,6 +120,37 @@ class ReplayTransport(Transport):
             log.warning(msg)
         return self.stamp_tx(data)
 
+    @property
+    def batches(self) -> bool:
+        """As fast as possible with recorded stamps: chunks may be handed over many at a time."""
+        return self.opts["speed"] == 0 and self.opts["stamp"] == "recorded"
+
+    def read_many(self, timeout: float, max_chunks: int, until_ns: int | None = None) -> ChunkRun | list[Chunk]:
+        """Up to ``max_chunks`` chunks at once (only when ``batches``; otherwise one, paced).
+        With ``until_ns``, only chunks recorded before that time (possibly none)."""
+        if not self.batches:
+            c = self.read(timeout)
+            return [] if c is None else [c]
+        if not self._open:
+            raise DeviceIOError(f"{self.url}: read on a closed transport", source=self.url)
+        rx = self._rx
+        if self._i >= len(rx):
+            if not self.opts["loop"]:
+                raise EndOfStream(f"{self.url}: end of recording", source=self.url)
+            self._i = 0
+            self._pass += 1
+        end = min(len(rx), self._i + max_chunks)
+        if until_ns is not None:
+            end = min(end, int(np.searchsorted(self._rx_t, until_ns - self._pass * self._span, side="left")))
+        part = rx.slice(self._i, end) if end > self._i else None
+        self._i = max(self._i, end)
+        if part is None:
+            return []
+        shift = self._pass * self._span
+        if shift:
+            part = ChunkRun(part.data, part.lengths, part.t_ns + shift, part.directions)
+        return part
+
     def read(self, timeout: float) -> Chunk | None:
         if not self._open:
             raise DeviceIOError(f"{self.url}: read on a closed transport", source=self.url)
@@ -118,6 +161,7 @@ class ReplayTransport(Transport):
             self._i = 0
             self._pass += 1
         c = rx[self._i]
+        c = Chunk(c.data, c.t_ns, Direction.RX)
         shift = self._pass * self._span
         t_rec = c.t_ns + shift
         speed = self.opts["speed"]
@@ -134,3 +178,7 @@ class ReplayTransport(Transport):
         if self.opts["stamp"] == "now":
             return Chunk(c.data, self.clock.now_ns(), c.direction)
         return Chunk(c.data, t_rec, c.direction) if shift else c
+
+    @property
+    def chunks_total(self) -> int:
+        return 0 if self._chunks is None else len(self._rx)

@@ -7,6 +7,7 @@ group, so production code never imports the simulators.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import logging
 from importlib.metadata import entry_points
@@ -24,6 +25,7 @@ TRANSPORTS: dict[str, tuple[str, str]] = {}
 _ENTRY_POINT_GROUP = "perfcap.transports"
 
 
+@functools.lru_cache(maxsize=1)
 def _entry_points() -> dict[str, Any]:
     return {ep.name: ep for ep in entry_points(group=_ENTRY_POINT_GROUP)}
 

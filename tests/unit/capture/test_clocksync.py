@@ -150,3 +150,89 @@ def test_lower_hull():
     xs = [0, 1, 2, 3, 4]
     ys = [0, -1, 5, -1, 0]
     assert lower_hull(xs, ys) == [0, 1, 3, 4]
+
+
+# -- the batch path is bit-identical to the per-chunk path -------------------------------------------
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@st.composite
+def scenarios(draw):
+    clock = draw(st.sampled_from(["device", "wrap16", "msday", "pseudo", "irregular"]))
+    rate = draw(st.sampled_from([50.0, 200.0, 1000.0]))
+    n = draw(st.integers(1, 1500))
+    seed = draw(st.integers(0, 10**6))
+    events = draw(st.lists(st.tuples(st.integers(0, n), st.sampled_from(["reset", "stall", "burst"])), max_size=4))
+    splits = draw(st.lists(st.integers(1, 400), max_size=10))
+    return clock, rate, n, seed, events, splits
+
+
+def make_chunks(clock, rate, n, seed, events):
+    rng = np.random.default_rng(seed)
+    spec = {"device": DeviceClockSpec(1e6, 2**32), "wrap16": DeviceClockSpec(3e6 / 16, 2**16),
+            "msday": DeviceClockSpec(1000.0, 86_400_000)}.get(clock)
+    ev = dict(events)
+    chunks = []  # (host, [ticks])
+    host = HOST0
+    dev_s = 0.0
+    dev_off = 86_399_000 if clock == "msday" else 0
+    pending = []
+    for i in range(n):
+        kind = ev.get(i)
+        if kind == "reset":
+            dev_s = -1.0 * i / rate  # device clock restarts
+        if kind == "stall":
+            host += int(2e9)
+        t = i / rate
+        tick = None
+        if spec is not None:
+            tick = int(round((t + dev_s) * spec.tick_hz)) + dev_off
+            if spec.wrap_ticks:
+                tick %= spec.wrap_ticks
+            if tick < 0:
+                tick = 0
+        pending.append(tick)
+        burst = 4 if kind == "burst" else 1
+        if len(pending) >= burst:
+            arrival = host + int(t * 1e9 * (1 + 60e-6)) + int(rng.uniform(0, 3e6))
+            if chunks and arrival < chunks[-1][0]:
+                arrival = chunks[-1][0]
+            chunks.append((arrival, pending))
+            pending = []
+    return spec, chunks
+
+
+@settings(max_examples=60, deadline=None)
+@given(scenarios())
+def test_stamp_many_equals_stamp(sc):
+    clock, rate, n, seed, events, splits = sc
+    spec, chunks = make_chunks(clock, rate, n, seed, events)
+    nominal = None if clock == "irregular" else rate
+    a = ClockSync("s", spec, nominal)
+    b = ClockSync("s", spec, nominal)
+    ref_dev, ref_bus = [], []
+    for host, ticks in chunks:
+        d, bb = a.stamp(host, ticks if spec is not None else None, len(ticks))
+        ref_dev += d
+        ref_bus += bb
+    got_dev, got_bus = [], []
+    i = 0
+    for size in [*splits, len(chunks)]:
+        part = chunks[i:i + size]
+        i += size
+        if not part:
+            continue
+        hosts = np.array([h for h, _ in part], np.int64)
+        chunk_of = np.concatenate([np.full(len(t), k) for k, (_, t) in enumerate(part)]).astype(np.int64)
+        ticks = np.array([x for _, t in part for x in t], np.int64) if spec is not None else None
+        d, bb, _ = b.stamp_many(hosts, chunk_of, ticks)
+        got_dev += [None] * len(bb) if d is None else d.tolist()
+        got_bus += bb.tolist()
+        if i >= len(chunks):
+            break
+    assert got_dev == ref_dev
+    assert got_bus == ref_bus
+    assert (a.epoch, a.resets, a.points) == (b.epoch, b.resets, b.points)
+    if a.epoch >= 0:
+        assert (a._a, a._b, a._delay_hi) == (b._a, b._b, b._delay_hi)

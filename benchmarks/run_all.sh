@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# Run every perfcap benchmark in sequence. Usage: benchmarks/run_all.sh [PYTHON]
+# Each script prints PASS/FAIL per target and exits 0; this script fails only if one crashes.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY="${1:-.venv/bin/python}"
+for b in bench_bus bench_clocksync bench_replay bench_recorder; do
+    echo
+    echo "################ benchmarks/$b.py"
+    "$PY" "benchmarks/$b.py"
+done
