@@ -96,8 +96,10 @@ class ClockSync:
         self._tol_ns = tol_ns
         if window_s is None:
             window_s = 4.0 if self.pseudo else 20.0
-        self._bin_ns = bin_s * 1e9
-        self._refit_ns = refit_s * 1e9
+        # Bins and refits are anchored to absolute device time (integer ns), so the fit does not
+        # depend on which reading happened to start an epoch or how reads were split.
+        self._bin_ns = max(1, int(round(bin_s * 1e9)))
+        self._refit_ns = max(1, int(round(refit_s * 1e9)))
         n = max(2, int(math.ceil(window_s / bin_s)))
         self._mins: deque[tuple[float, float]] = deque(maxlen=n)
         self._maxs: deque[tuple[float, float]] = deque(maxlen=n)
@@ -123,10 +125,10 @@ class ClockSync:
         self._b = 0.0
         self._mins.clear()
         self._maxs.clear()
-        self._bin = 0
+        self._bin = dev_ns // self._bin_ns
         self._bin_min = (0.0, 0.0)
         self._bin_max = (0.0, 0.0)
-        self._last_refit_x = 0.0
+        self._refit_slot = dev_ns // self._refit_ns
         self._last_host = host_ns
         self._last_dev = dev_ns
         self._delay_hi = 0.0
@@ -366,14 +368,14 @@ class ClockSync:
         stop = (d < prev) | (delay < -self._tol_ns) | (delay > self._tol_ns)
         if self.pseudo:
             stop |= delay > self._gap_ns + 2 * self._delay_hi
-        stop |= (x - self._last_refit_x) >= self._refit_ns
+        stop |= (d // self._refit_ns) != self._refit_slot
         hit = np.flatnonzero(stop)
         k = int(hit[0]) if hit.size else len(d)
         if k == 0:
             return i
         xs, ys = x[:k], y[:k]
         # bins: the same updates the per-point code makes
-        bins = np.floor_divide(xs, self._bin_ns).astype(np.int64)
+        bins = d[:k] // self._bin_ns
         cuts = np.flatnonzero(bins[1:] != bins[:-1]) + 1
         bounds = [0, *cuts.tolist(), k]
         for s_, e_ in zip(bounds[:-1], bounds[1:]):
@@ -440,7 +442,7 @@ class ClockSync:
         if cand < self._a:
             self._a = cand  # the line was above a real point: move it down now
             self._state_dirty = True
-        bi = int(x // self._bin_ns)
+        bi = dev // self._bin_ns
         if bi != self._bin:
             self._mins.append(self._bin_min)
             self._maxs.append(self._bin_max)
@@ -455,9 +457,10 @@ class ClockSync:
                 self._bin_min = (x, y)
             if y > self._bin_max[1]:
                 self._bin_max = (x, y)
-        if x - self._last_refit_x >= self._refit_ns:
+        slot = dev // self._refit_ns
+        if slot != self._refit_slot:
             self._refit()
-            self._last_refit_x = x
+            self._refit_slot = slot
 
     def _refit(self) -> None:
         pts = list(self._mins)
