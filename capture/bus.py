@@ -25,7 +25,8 @@ import logging
 import queue
 import threading
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any
+from collections.abc import Iterable
 
 from capture.clock import MONOTONIC, Clock
 from capture.sample import ClockState, DeviceChunk, DeviceChunks, DeviceEvent, EventKind, Sample, SampleBatch

@@ -17,7 +17,8 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 from capture import __version__
 from capture.errors import CaptureError, ConfigError

@@ -7,7 +7,8 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 from capture.bus import Overflow, SampleBus, Subscriber
 from capture.clock import MONOTONIC, Clock

@@ -17,7 +17,8 @@ import importlib
 import re
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceUnavailableError

@@ -14,7 +14,8 @@ import enum
 import logging
 import threading
 from dataclasses import dataclass
-from typing import Any, ClassVar, Iterable, Mapping, NamedTuple
+from typing import Any, ClassVar, NamedTuple
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 

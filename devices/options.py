@@ -7,7 +7,8 @@ checked here, and an unknown key or a bad value raises ``ConfigError`` that show
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from capture.errors import ConfigError
 

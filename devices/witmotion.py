@@ -18,7 +18,7 @@ the sensor) it is the device clock, wrapping at midnight.
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable
+from collections.abc import Iterable
 
 import numpy as np
 

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 
 from capture.clock import MONOTONIC, Clock
-from capture.errors import ConfigError, DeviceIOError, EndOfStream, ProtocolError, SessionError
+from capture.errors import ConfigError, DeviceIOError, EndOfStream, ProtocolError
 from capture.sample import Chunk, ChunkRun, Direction
 from capture.session import DeviceRecord, SessionReader
 from devices.options import Option

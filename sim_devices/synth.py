@@ -15,7 +15,8 @@ from __future__ import annotations
 import random
 
 import numpy as np
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream

@@ -11,7 +11,8 @@ import functools
 import importlib
 import logging
 from importlib.metadata import entry_points
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceUnavailableError

@@ -8,7 +8,8 @@ the same interface, so the code above cannot tell them apart.
 from __future__ import annotations
 
 import abc
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
+from collections.abc import Mapping
 from urllib.parse import parse_qsl, urlsplit
 
 from capture.clock import MONOTONIC, Clock

@@ -16,7 +16,7 @@ def test_real_devices_record_and_replay_equal(hil_devices, session_path):
     rep = Capture(hil_devices, output=session_path).run(2.0)
     assert rep.recorder_error is None
     assert any(s["samples"] > 0 for s in rep.streams.values()), rep.devices
-    for name, s in rep.streams.items():
+    for s in rep.streams.values():
         if s["samples"] > 10:
             assert s["rate_hz"] > 0
     assert replay_session(session_path, speed=0).verification["equal"]

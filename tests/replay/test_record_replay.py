@@ -10,7 +10,6 @@ from capture.clock import ManualClock
 from capture.errors import ConfigError, EndOfStream, SessionError
 from capture.pipeline import Capture
 from capture.player import ReplayVerifier, replay_session
-from capture.sample import Chunk, Sample
 from capture.session import SessionReader
 from devices import open_device
 
@@ -76,7 +75,7 @@ def test_replay_transport_paces_by_recorded_time_at_any_speed(session_path):
 
 
 def test_replay_loops_with_increasing_times(session_path):
-    record(session_path, [f"a=synth://imu?rate=50&realtime=false&duration=1"])
+    record(session_path, ["a=synth://imu?rate=50&realtime=false&duration=1"])
     d = open_device(f"replay://{session_path}?speed=0&loop=true")
     d.open()
     n = len(list(SessionReader(session_path).raw_chunks("a")))
@@ -88,7 +87,7 @@ def test_replay_loops_with_increasing_times(session_path):
 
 
 def test_replay_stamp_now_option(session_path):
-    record(session_path, [f"a=synth://imu?rate=50&realtime=false&duration=0.5"])
+    record(session_path, ["a=synth://imu?rate=50&realtime=false&duration=0.5"])
     clk = ManualClock(123_000_000_000)
     d = open_device(f"replay://{session_path}?speed=0&stamp=now", clock=clk)
     d.open()

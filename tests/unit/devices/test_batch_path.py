@@ -53,7 +53,6 @@ def flatten(items) -> dict[str, list[tuple]]:
 
 
 def per_chunk(chunks, opts):
-    d = open_device("x=witmotion@synth://imu", extra_transport_options=None)
     d = open_device(f"x=witmotion@synth://imu?rate={opts['rate']}&device_clock={opts['device_clock']}")
     out = []
     for c in chunks:
