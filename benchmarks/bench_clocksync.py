@@ -101,7 +101,6 @@ def stamp_cost() -> tuple[float, float]:
     """Microseconds per ClockSync.stamp call: one reading per chunk, and 4 readings per chunk."""
     out = []
     for per in (1, 4):
-        cs = ClockSync("bench/imu", SPEC, RATE)
         n = 200_000 // per
         step = int(TICK_HZ / RATE)
         host = T0
@@ -112,11 +111,15 @@ def stamp_cost() -> tuple[float, float]:
             tk += per * step
             host += int(per * 1e9 / RATE)
             args.append((host + 1_000_000, tks))
-        stamp = cs.stamp
-        t0 = time.perf_counter()
-        for h, tks in args:
-            stamp(h, tks)
-        out.append((time.perf_counter() - t0) / n * 1e6)
+        best = float("inf")
+        for _ in range(3):  # best of 3 fresh fits over the same input
+            cs = ClockSync("bench/imu", SPEC, RATE)
+            stamp = cs.stamp
+            t0 = time.perf_counter()
+            for h, tks in args:
+                stamp(h, tks)
+            best = min(best, (time.perf_counter() - t0) / n * 1e6)
+        out.append(best)
     return out[0], out[1]
 
 
@@ -159,7 +162,7 @@ def main() -> None:
               f"{p99s['baseline: arrival time']:.3f} ms, least-squares baseline {p99s['baseline: least squares']:.3f} ms)")
     print()
     c1, c4 = stamp_cost()
-    print(f"ClockSync.stamp cost: {c1:.2f} us per call with 1 reading, {c4:.2f} us per call with 4 readings"
+    print(f"ClockSync.stamp cost (best of 3 runs of 200,000 readings): {c1:.2f} us per call with 1 reading, {c4:.2f} us per call with 4 readings"
           f" ({c4 / 4:.2f} us per reading)")
     print(f"   [info] at 5 kHz aggregate (one reading per chunk) that is {c1 * 5000 / 1e4:.2f}% of one core")
     summary()

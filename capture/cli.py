@@ -191,10 +191,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
                         out(f"  MISMATCH {name}: {v['mismatches']} differ, {v['missing']} not reproduced")
                 for name, m in ver["first_mismatch"].items():
                     out(f"  first difference in {name}: {m}")
+    failed = [n for n, d in rep.capture.devices.items() if d["state"] == "failed"]
+    if failed:
+        print(f"perfcap: error: device(s) failed during replay: {', '.join(failed)}", file=sys.stderr)
+        return EXIT_CHECK_FAILED
     if ver is not None and not ver["equal"] and not args.loop:
         print("perfcap: error: replayed samples differ from the recorded ones", file=sys.stderr)
         return EXIT_CHECK_FAILED
-    return _print_capture(rep.capture, False) if False else 0
+    return 0
 
 
 def cmd_info(args: argparse.Namespace) -> int:
