@@ -121,6 +121,7 @@ class Subscription:
         self.detached = False
         self.max_pending = 0
         self._pending_bytes = 0
+        self._mean_size = 250.0
         self._warn_level = 0
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
         if policy is Overflow.NEVER_DROP:
@@ -134,7 +135,10 @@ class Subscription:
 
     def _offer_keep_newest(self, item: Any) -> None:
         q = self._q
-        if q.qsize() >= self.max_items:
+        n = q.qsize()
+        if n > self.max_pending:
+            self.max_pending = n
+        if n >= self.max_items:
             try:
                 q.get_nowait()
                 with self._lock:
@@ -144,16 +148,28 @@ class Subscription:
         q.put(item)
 
     def _offer_never_drop(self, item: Any) -> None:
-        size = item_size(item)
+        # Memory is estimated as queue length x a running mean item size (no lock on the hot path;
+        # the estimate only needs to be right to a few percent to enforce a bound of megabytes).
+        n = self._q.qsize()
+        if n > self.max_pending:
+            self.max_pending = n
+        if type(item) is Sample:
+            size = 200 + 24 * len(item.values)
+        else:
+            size = item_size(item)
+        self._mean_size += (size - self._mean_size) * 0.01
+        pending = (n + 1) * self._mean_size
+        self._pending_bytes = int(pending)
+        if pending <= self.max_bytes * 0.25 and not self._warn_level:
+            self._q.put(item)
+            return
         warn = 0
         with self._lock:
-            pending = self._pending_bytes + size
             if pending > self.max_bytes:
                 self.dropped += 1
                 dropped = self.dropped
             else:
                 dropped = 0
-                self._pending_bytes = pending
                 if self._warn_level < 3 and pending * 4 > (self._warn_level + 1) * self.max_bytes:
                     self._warn_level += 1
                     warn = self._warn_level
@@ -187,11 +203,9 @@ class Subscription:
                 continue
             if item is _STOP:
                 break
-            if never_drop:
-                size = item_size(item)
+            if never_drop and self._warn_level and q.qsize() * self._mean_size * 8 < self.max_bytes:
                 with self._lock:
-                    self._pending_bytes -= size
-                    if self._warn_level and self._pending_bytes * 8 < self.max_bytes:
+                    if self._warn_level:
                         log.warning("subscriber %s has caught up", self.name)
                         self._warn_level = 0
             if self.detached:
@@ -223,7 +237,7 @@ class Subscription:
         pending = self._q.qsize()
         self.max_pending = max(self.max_pending, pending)
         return SubscriptionStats(self.name, self.policy.value, self.delivered, self.dropped, self.errors,
-                                 pending, self._pending_bytes, self.max_pending, self.detached)
+                                 pending, int(pending * self._mean_size), self.max_pending, self.detached)
 
     def join(self, timeout: float | None = None) -> bool:
         """Wait until the delivery thread has finished; True if it did."""

@@ -128,10 +128,9 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     if reader.truncated:
         log.warning("%s was not closed cleanly (%s); replaying what it holds", path, reader.truncated)
     t0, t_end = session_span(reader)
-    start = clock.now_ns() + 20_000_000
     q = quote(path, safe="/:._-~")
     urls = [f"{name}=replay://{q}?device={quote(name)}&speed={speed!r}&loop={'true' if loop else 'false'}"
-            f"&start_ns={start}&t0_ns={t0}" for name in reader.devices]
+            for name in reader.devices]
     cap = Capture(urls, output=output, overwrite=overwrite, clock=clock,
                   meta={"replay_of": path, "speed": repr(speed)})
     verifier = None
@@ -140,6 +139,12 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
         cap.subscribe(verifier, Overflow.NEVER_DROP, "verifier")
     for sub, pol in subscribers or []:
         cap.subscribe(sub, pol)
+    # One timeline for every device, fixed after all setup so the first chunks are not late.
+    start = clock.now_ns() + 20_000_000
+    for d in cap.devices:
+        set_timeline = getattr(d.transport, "set_timeline", None)
+        if set_timeline is not None:
+            set_timeline(start, t0)
     if speed == 0 and not loop and duration_s is None:
         report = cap.run_offline(stop=stop, on_tick=on_tick)
     else:

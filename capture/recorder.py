@@ -9,6 +9,7 @@ SIGKILL loses at most ``max_loss_s`` of data.
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 from capture.bus import EVERYTHING, Subscriber
@@ -140,6 +141,7 @@ class SessionRecorder(Subscriber):
         for stream, items in self._smp.items():
             if not items:
                 continue
+            time.sleep(0)  # let device and delivery threads in between streams
             self._smp[stream] = []
             ch = self._channels[stream]
             blocks: list[SampleBatch] = []

@@ -72,8 +72,9 @@ class SampleBatch:
         if n == 0:
             e = np.empty(0, np.int64)
             return cls(stream, e, e.copy(), e.copy(), e.copy(), np.empty((0, channels)))
-        seq, th, td, tb, vals = zip(*((s.seq, s.t_host_ns, NO_TIME if s.t_device_ns is None else s.t_device_ns,
-                                       s.t_bus_ns, s.values) for s in samples))
+        _, seq, th, td, tb, vals = zip(*samples)  # C-level transposition
+        if None in td:
+            td = [NO_TIME if x is None else x for x in td]
         return cls(stream, np.array(seq, np.int64), np.array(th, np.int64), np.array(td, np.int64),
                    np.array(tb, np.int64), np.array(vals, np.float64).reshape(n, channels))
 

@@ -63,7 +63,13 @@ class ReplayTransport(Transport):
         self._i = 0
         self._pass = 0
         self.tx_mismatches = 0
+        self._timeline: tuple[int, int] | None = None
         self.lateness_ns: deque[int] = deque(maxlen=200_000)
+
+    def set_timeline(self, start_ns: int, t0_ns: int = 0) -> None:
+        """Play recorded time ``t0_ns`` (0: the first chunk) at host time ``start_ns``; several replayed
+        devices given the same timeline stay in step. Call before the device is opened."""
+        self._timeline = (start_ns, t0_ns)
 
     def implied_kind(self) -> str:
         return self.record.kind
@@ -96,7 +102,9 @@ class ReplayTransport(Transport):
             n = len(self._rx)
             self._span = (last - first) + ((last - first) // (n - 1) if n > 1 else 1_000_000)
             self._t0 = self.opts["t0_ns"] or first
-            self._start = self.opts["start_ns"] or self.clock.now_ns()
+            self._start = self._timeline[0] if self._timeline else (self.opts["start_ns"] or self.clock.now_ns())
+            if self._timeline and self._timeline[1]:
+                self._t0 = self._timeline[1]
         self._open = True
 
     def close(self) -> None:
