@@ -120,8 +120,9 @@ class Subscription:
         self.errors = 0
         self.detached = False
         self.max_pending = 0
-        self._pending_bytes = 0
         self._mean_size = 250.0
+        self._k = 0
+        self._quarter = max_bytes / 4
         self._warn_level = 0
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
         if policy is Overflow.NEVER_DROP:
@@ -150,18 +151,20 @@ class Subscription:
     def _offer_never_drop(self, item: Any) -> None:
         # Memory is estimated as queue length x a running mean item size (no lock on the hot path;
         # the estimate only needs to be right to a few percent to enforce a bound of megabytes).
-        n = self._q.qsize()
+        # Big items (batches, chunk runs) always update the mean; single samples every 16th.
+        q = self._q
+        n = q.qsize()
         if n > self.max_pending:
             self.max_pending = n
         if type(item) is Sample:
-            size = 200 + 24 * len(item.values)
+            self._k = (self._k + 1) & 15
+            if not self._k:
+                self._mean_size += (200 + 24 * len(item.values) - self._mean_size) * 0.05
         else:
-            size = item_size(item)
-        self._mean_size += (size - self._mean_size) * 0.01
+            self._mean_size += (item_size(item) - self._mean_size) * 0.05
         pending = (n + 1) * self._mean_size
-        self._pending_bytes = int(pending)
-        if pending <= self.max_bytes * 0.25 and not self._warn_level:
-            self._q.put(item)
+        if pending <= self._quarter and not self._warn_level:
+            q.put(item)
             return
         warn = 0
         with self._lock:
