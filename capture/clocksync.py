@@ -41,13 +41,36 @@ log = logging.getLogger(__name__)
 
 
 def lower_hull(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
-    """Indices of the lower convex hull of points already sorted by x (Andrew's monotone chain)."""
+    """Indices of the lower convex hull of points sorted by x (collinear middle points excluded).
+
+    Vectorised: every middle point not strictly below the segment joining its neighbours cannot be
+    a hull vertex, so all of them are dropped at once, until none is left (usually a few passes).
+    Andrew's monotone chain finishes the rare inputs that need many passes.
+    """
+    x = np.asarray(xs, np.float64)
+    y = np.asarray(ys, np.float64)
+    idx = np.arange(x.shape[0])
+    for _ in range(24):
+        if idx.shape[0] <= 2:
+            return idx.tolist()
+        xo, yo = x[idx[:-2]], y[idx[:-2]]
+        dxa, dya = x[idx[1:-1]] - xo, y[idx[1:-1]] - yo
+        bad = dxa * (y[idx[2:]] - yo) - dya * (x[idx[2:]] - xo) <= 0
+        if not bad.any():
+            return idx.tolist()
+        keep = np.ones(idx.shape[0], bool)
+        keep[1:-1] = ~bad
+        idx = idx[keep]
+    return _monotone_chain(x, y, idx.tolist())
+
+
+def _monotone_chain(x: np.ndarray, y: np.ndarray, order: list[int]) -> list[int]:
+    xs, ys = x.tolist(), y.tolist()
     hull: list[int] = []
-    for i in range(len(xs)):
+    for i in order:
         xi, yi = xs[i], ys[i]
         while len(hull) >= 2:
             o, a = hull[-2], hull[-1]
-            # cross((a-o),(i-o)) <= 0 means a is not below segment o-i
             if (xs[a] - xs[o]) * (yi - ys[o]) - (ys[a] - ys[o]) * (xi - xs[o]) <= 0:
                 hull.pop()
             else:
@@ -57,6 +80,15 @@ def lower_hull(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
 
 
 _LOOKAHEAD = 512
+
+
+def _first_per_run(hits: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """The first of ``hits`` (sorted indices) in each run; every run has at least one hit."""
+    r = run_id[hits]
+    keep = np.empty(r.shape[0], bool)
+    keep[0] = True
+    np.not_equal(r[1:], r[:-1], out=keep[1:])
+    return hits[keep]
 
 
 class ClockSync:
@@ -374,30 +406,31 @@ class ClockSync:
         if k == 0:
             return i
         xs, ys = x[:k], y[:k]
-        # bins: the same updates the per-point code makes
+        # bins: the same updates the per-point code makes (a new bin starts at its first point; the
+        # earliest strictly lower / higher point of a bin replaces its min / max)
         bins = d[:k] // self._bin_ns
-        cuts = np.flatnonzero(bins[1:] != bins[:-1]) + 1
-        bounds = [0, *cuts.tolist(), k]
-        for s_, e_ in zip(bounds[:-1], bounds[1:]):
-            seg_y = ys[s_:e_]
-            jmin = s_ + int(np.argmin(seg_y))
-            jmax = s_ + int(np.argmax(seg_y))
-            bi = int(bins[s_])
+        newrun = np.empty(k, bool)
+        newrun[0] = True
+        np.not_equal(bins[1:], bins[:-1], out=newrun[1:])
+        starts = np.flatnonzero(newrun)
+        run_id = np.cumsum(newrun) - 1
+        mins = np.minimum.reduceat(ys, starts)
+        maxs = np.maximum.reduceat(ys, starts)
+        first_min = _first_per_run(np.flatnonzero(ys == mins[run_id]), run_id)
+        first_max = _first_per_run(np.flatnonzero(ys == maxs[run_id]), run_id)
+        for bi, jmin, jmax in zip(bins[starts].tolist(), first_min.tolist(), first_max.tolist()):
+            ymin, ymax = float(ys[jmin]), float(ys[jmax])
             if bi != self._bin:
                 self._mins.append(self._bin_min)
                 self._maxs.append(self._bin_max)
                 self._bin = bi
-                self._bin_min = (float(xs[s_]), float(ys[s_]))
-                self._bin_max = (float(xs[s_]), float(ys[s_]))
-                if jmin != s_ and ys[jmin] < self._bin_min[1]:
-                    self._bin_min = (float(xs[jmin]), float(ys[jmin]))
-                if jmax != s_ and ys[jmax] > self._bin_max[1]:
-                    self._bin_max = (float(xs[jmax]), float(ys[jmax]))
+                self._bin_min = (float(xs[jmin]), ymin)
+                self._bin_max = (float(xs[jmax]), ymax)
             else:
-                if ys[jmin] < self._bin_min[1]:
-                    self._bin_min = (float(xs[jmin]), float(ys[jmin]))
-                if ys[jmax] > self._bin_max[1]:
-                    self._bin_max = (float(xs[jmax]), float(ys[jmax]))
+                if ymin < self._bin_min[1]:
+                    self._bin_min = (float(xs[jmin]), ymin)
+                if ymax > self._bin_max[1]:
+                    self._bin_max = (float(xs[jmax]), ymax)
         a_new = float(a_after[k - 1])
         if a_new < self._a:
             self._state_dirty = True
@@ -463,27 +496,19 @@ class ClockSync:
             self._refit_slot = slot
 
     def _refit(self) -> None:
-        pts = list(self._mins)
-        pts.append(self._bin_min)
-        xs = [p[0] for p in pts]
-        ys = [p[1] for p in pts]
-        if len(pts) < 3 or xs[-1] - xs[0] < 1e9:
+        pts = np.array([*self._mins, self._bin_min], np.float64)
+        xs, ys = pts[:, 0], pts[:, 1]
+        if pts.shape[0] < 3 or xs[-1] - xs[0] < 1e9:
             b = self._b
-            a = min(y - b * x for x, y in zip(xs, ys))
+            a = float(np.min(ys - b * xs))
         else:
             hull = lower_hull(xs, ys)
-            xref = sum(xs) / len(xs)
-            j = 0
-            while j < len(hull) - 2 and xs[hull[j + 1]] < xref:
-                j += 1
+            hx = xs[hull]
+            j = min(int(np.searchsorted(hx[1:], float(xs.mean()), side="left")), len(hull) - 2)
             i0, i1 = hull[j], hull[j + 1]
-            b = (ys[i1] - ys[i0]) / (xs[i1] - xs[i0])
-            a = ys[i0] - b * xs[i0]
+            b = float((ys[i1] - ys[i0]) / (xs[i1] - xs[i0]))
+            a = float(ys[i0] - b * xs[i0])
         self._a, self._b = a, b
-        hi = 0.0
-        for x, y in (*self._maxs, self._bin_max):
-            d = y - (a + b * x)
-            if d > hi:
-                hi = d
-        self._delay_hi = hi
+        mx = np.array([*self._maxs, self._bin_max], np.float64)
+        self._delay_hi = max(0.0, float(np.max(mx[:, 1] - (a + b * mx[:, 0]))))
         self._state_dirty = True

@@ -199,33 +199,38 @@ def encode_sample_block(b: SampleBatch, quantum: tuple[float, ...] | None = None
 def decode_sample_block(stream: str, data: bytes) -> SampleBatch:
     mv = memoryview(data)
     n, c, flags = _hdr_samples.unpack_from(mv, 0)
-    o = _hdr_samples.size
-    seq = _undelta(mv[o:o + 8 * n], n)
-    o += 8 * n
-    th = _undelta(mv[o:o + 8 * n], n)
-    o += 8 * n
-    if flags & 1:
-        td = _undelta(mv[o:o + 8 * n], n)
-        o += 8 * n
-    else:
-        td = np.full(n, NO_TIME, np.int64)
-    tb = _undelta(mv[o:o + 8 * n], n)
-    o += 8 * n
     if not flags & 4:
         raise ValueError(f"sample block of {stream}: unknown value layout (flags {flags})")
+    o = _hdr_samples.size
+    k = 4 if flags & 1 else 3
+    times = np.cumsum(np.frombuffer(mv[o:o + 8 * n * k], "<i8").reshape(k, n), axis=1, dtype=np.int64)
+    o += 8 * n * k
+    seq, th = times[0], times[1]
+    if flags & 1:
+        td, tb = times[2], times[3]
+    else:
+        td, tb = np.full(n, NO_TIME, np.int64), times[2]
     vals = np.empty((n, c), np.float64)
-    for j in range(c):
+    stride_q = _q.size + 4 * n
+    j = 0
+    while j < c:
         mode = mv[o]
-        if mode == 0:
+        if mode == 1:
+            # a run of integer columns: decode them together
+            m = 1
+            while j + m < c and o + m * stride_q < len(data) and mv[o + m * stride_q] == 1:
+                m += 1
+            block = np.frombuffer(mv[o:o + m * stride_q], np.uint8).reshape(m, stride_q)
+            quanta = block[:, 1:_q.size].copy().view("<f8").reshape(m)
+            ints = block[:, _q.size:].copy().view("<i4").reshape(m, n)
+            vals[:, j:j + m] = (np.cumsum(ints, axis=1, dtype=np.int64).astype(np.float64) * quanta[:, None]).T
+            o += m * stride_q
+            j += m
+        elif mode == 0:
             raw = np.frombuffer(mv[o + 1:o + 1 + 8 * n], np.uint8)
             vals[:, j] = raw.reshape(8, n).T.copy().view("<f8").reshape(n)
             o += 1 + 8 * n
-        elif mode == 1:
-            _, quantum = _q.unpack_from(mv, o)
-            o += _q.size
-            d = np.frombuffer(mv[o:o + 4 * n], "<i4").astype(np.int64)
-            vals[:, j] = np.cumsum(d).astype(np.float64) * quantum
-            o += 4 * n
+            j += 1
         else:
             raise ValueError(f"sample block of {stream}: unknown column mode {mode}")
     if o != len(data):

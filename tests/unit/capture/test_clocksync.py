@@ -236,3 +236,16 @@ def test_stamp_many_equals_stamp(sc):
     assert (a.epoch, a.resets, a.points) == (b.epoch, b.resets, b.points)
     if a.epoch >= 0:
         assert (a._a, a._b, a._delay_hi) == (b._a, b._b, b._delay_hi)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.floats(-1e6, 1e6), st.floats(-1e6, 1e6)), min_size=1, max_size=300))
+def test_vectorised_hull_is_the_monotone_chain_hull(pts):
+    from capture.clocksync import _monotone_chain
+
+    pts = sorted(set(pts))
+    xs = np.array([p[0] for p in pts])
+    ys = np.array([p[1] for p in pts])
+    ref = _monotone_chain(xs, ys, list(range(len(pts))))
+    got = lower_hull(xs, ys)
+    assert [pts[i] for i in got] == [pts[i] for i in ref]
