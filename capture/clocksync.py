@@ -41,7 +41,8 @@ log = logging.getLogger(__name__)
 
 
 def lower_hull(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
-    """Indices of the lower convex hull of points sorted by x (collinear middle points excluded).
+    """Indices of the lower convex hull of points with strictly increasing x (collinear middle points
+    excluded).
 
     Vectorised: every middle point not strictly below the segment joining its neighbours cannot be
     a hull vertex, so all of them are dropped at once, until none is left (usually a few passes).

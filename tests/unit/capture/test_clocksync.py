@@ -243,7 +243,7 @@ def test_stamp_many_equals_stamp(sc):
 def test_vectorised_hull_is_the_monotone_chain_hull(pts):
     from capture.clocksync import _monotone_chain
 
-    pts = sorted(set(pts))
+    pts = sorted({x: (x, y) for x, y in pts}.values())  # strictly increasing x, as bin minima are
     xs = np.array([p[0] for p in pts])
     ys = np.array([p[1] for p in pts])
     ref = _monotone_chain(xs, ys, list(range(len(pts))))
