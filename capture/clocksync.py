@@ -113,7 +113,7 @@ class ClockSync:
     """
 
     def __init__(self, stream: str, clock: DeviceClockSpec | None, nominal_rate_hz: float | None, *,
-                 window_s: float | None = None, bin_s: float = 0.1, refit_s: float = 1.0,
+                 window_s: float | None = None, bin_s: float = 0.1, refit_s: float = 2.0,
                  reset_tolerance_s: float = 1.0, gap_s: float | None = None) -> None:
         self.stream = stream
         self.pseudo = clock is None
