@@ -8,6 +8,8 @@ import math
 import random
 from typing import NamedTuple
 
+import numpy as np
+
 G = 9.80665
 
 
@@ -62,3 +64,31 @@ class WavingMotion:
         bz = r02 * ax + r12 * ay + r22 * az
         d = math.degrees
         return MotionSample((bx / G, by / G, bz / G), (d(p), d(q), d(r)), (d(phi), d(theta), d(psi)))
+
+    def at_many(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``at`` for many times: (acc_g (n,3), gyro_dps (n,3), euler_deg (n,3))."""
+        t = np.asarray(t, np.float64)
+        ang = np.zeros((3, t.size))
+        rate = np.zeros((3, t.size))
+        for k, terms in enumerate(self.terms):
+            for amp, w, ph in terms:
+                ang[k] += amp * np.sin(w * t + ph)
+                rate[k] += amp * w * np.cos(w * t + ph)
+        phi, theta, psi = ang
+        dphi, dtheta, dpsi = rate
+        sphi, cphi = np.sin(phi), np.cos(phi)
+        sth, cth = np.sin(theta), np.cos(theta)
+        sps, cps = np.sin(psi), np.cos(psi)
+        p = dphi - dpsi * sth
+        q = dtheta * cphi + dpsi * cth * sphi
+        r = -dtheta * sphi + dpsi * cth * cphi
+        ax, ay, az = (amp * np.sin(w * t + ph) for amp, w, ph in self.lin)
+        az = az + G
+        r00, r01, r02 = cps * cth, cps * sth * sphi - sps * cphi, cps * sth * cphi + sps * sphi
+        r10, r11, r12 = sps * cth, sps * sth * sphi + cps * cphi, sps * sth * cphi - cps * sphi
+        r20, r21, r22 = -sth, cth * sphi, cth * cphi
+        acc = np.stack([r00 * ax + r10 * ay + r20 * az, r01 * ax + r11 * ay + r21 * az,
+                        r02 * ax + r12 * ay + r22 * az], axis=1) / G
+        gyro = np.degrees(np.stack([p, q, r], axis=1))
+        eul = np.degrees(np.stack([phi, theta, psi], axis=1))
+        return acc, gyro, eul

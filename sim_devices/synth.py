@@ -12,7 +12,7 @@ reading so tests can measure clock-sync error end to end.
 
 from __future__ import annotations
 
-import random
+from collections import deque
 
 import numpy as np
 from typing import Any
@@ -21,10 +21,9 @@ from collections.abc import Mapping
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
 from capture.sample import Chunk
-from devices.codecs.witmotion import WitMotionCodec
+from devices.codecs.witmotion import ACC, ANGLE, GYRO, TIME, WitMotionCodec
 from devices.options import Option
 from devices.transports.base import Transport
-from devices.witmotion import encode_cycle
 from sim_devices.motion import WavingMotion
 
 KINDS = {"imu": "witmotion"}
@@ -66,12 +65,13 @@ class SynthTransport(Transport):
         if self._csv is not None:
             dt = np.diff(self._csv[:, 0])
             self._csv_rate = round(1.0 / float(np.median(dt)), 3) if dt.size else 100.0
-        self._rng = random.Random(o["seed"] * 7919 + 1)
+        self._nrng = np.random.default_rng(o["seed"] * 7919 + 1)
+        self._last_arrival = 0
         self._open = False
         self._i = 0
         self._t0: int | None = None
         self.truth_ns: list[int] = []
-        self._queue: list[tuple[int, bytes]] = []  # (arrival ns, bytes) ready to deliver
+        self._queue: deque[tuple[int, bytes, int]] = deque()  # (arrival, bytes, true time) to deliver
         self._virtual_now = 0
 
     def implied_kind(self) -> str:
@@ -114,57 +114,103 @@ class SynthTransport(Transport):
         return self.clock.now_ns() if self.opts["realtime"] else self._virtual_now
 
     def _produce_until(self, horizon_ns: int) -> None:
-        """Generate readings whose delivery time is at or before ``horizon_ns`` (plus one burst)."""
+        """Generate readings (in 0.1 s blocks) until one arrives after ``horizon_ns``."""
+        while not self._queue or self._queue[-1][0] <= horizon_ns:
+            if self._produce_block() < 0:
+                return
+
+    def _produce_block(self) -> int:
+        """One block of readings: motion, device clock, link timing and wire bytes, all with numpy.
+        Returns how many readings were made, or -1 when the take is over."""
         o = self.opts
         rate = o["rate"]
-        drift = o["drift_ppm"] * 1e-6
-        lat = o["latency_ms"] * 1e6
-        jit = o["jitter_ms"] * 1e6
-        burst = o["burst_ms"] * 1e6
         csv = self._csv
-        while True:
-            if csv is not None:
-                if self._i >= len(csv):
-                    return
-                dev_s = float(csv[self._i, 0] - csv[0, 0])
+        n_block = max(1, int(rate * 0.1))
+        i0 = self._i
+        if csv is not None:
+            if i0 >= len(csv):
+                return -1
+            idx = np.arange(i0, min(len(csv), i0 + n_block))
+            dev_s = csv[idx, 0] - csv[0, 0]
+        else:
+            idx = np.arange(i0, i0 + n_block)
+            dev_s = idx / rate
+        if o["duration"]:
+            keep = dev_s < o["duration"]
+            if not keep.any():
+                return -1
+            idx, dev_s = idx[keep], dev_s[keep]
+        drift = o["drift_ppm"] * 1e-6
+        t0 = self._t0
+        assert t0 is not None
+        true_host = t0 + np.round(dev_s / (1.0 + drift) * 1e9).astype(np.int64)
+        self._i = int(idx[-1]) + 1
+        made = idx.size
+        if o["unplug_at"]:
+            away = (dev_s >= o["unplug_at"]) & (dev_s < o["unplug_at"] + o["unplug_for"])
+            idx, dev_s, true_host = idx[~away], dev_s[~away], true_host[~away]  # these never reach the host
+            if idx.size == 0:
+                return made
+        n = idx.size
+        burst = int(o["burst_ms"] * 1e6)
+        deliver = (t0 + ((true_host - t0) // burst + 1) * burst) if burst else true_host
+        arrival = deliver + int(o["latency_ms"] * 1e6)
+        if o["jitter_ms"]:
+            arrival = arrival + self._nrng.uniform(0, o["jitter_ms"] * 1e6, n).astype(np.int64)
+        prev = self._queue[-1][0] if self._queue else self._last_arrival
+        arrival = np.maximum.accumulate(np.maximum(arrival, prev))  # a byte pipe keeps order
+        self._last_arrival = int(arrival[-1])
+        # packets of each cycle: [time], acc, gyro, [angle]
+        types: list[int] = []
+        payloads: list[np.ndarray] = []
+        if o["device_clock"]:
+            dev_ms = dev_s * 1000.0
+            if o["reset_at"]:
+                dev_ms = np.where(dev_s >= o["reset_at"], (dev_s - o["reset_at"]) * 1000.0, dev_ms + o["start_ms"])
             else:
-                dev_s = self._i / rate
-            if o["duration"] and dev_s >= o["duration"]:
-                return
-            if o["unplug_at"] and o["unplug_at"] <= dev_s < o["unplug_at"] + o["unplug_for"]:
-                self._i += 1  # the device is away: these readings never reach the host
-                continue
-            true_host = self._host_ns(dev_s / (1.0 + drift))
-            if burst:
-                rel = true_host - self._t0  # type: ignore[operator]
-                deliver = self._t0 + (int(rel // burst) + 1) * int(burst)  # type: ignore[operator]
-            else:
-                deliver = true_host
-            arrival = int(deliver + lat + (self._rng.uniform(0, jit) if jit else 0.0))
-            if self._queue and arrival < self._queue[-1][0]:
-                arrival = self._queue[-1][0]  # a byte pipe keeps order
-            if arrival > horizon_ns and not (self._queue and arrival == self._queue[-1][0]):
-                return
-            ms = None
-            if o["device_clock"]:
-                dev_ms = dev_s * 1000.0
-                if o["reset_at"] and dev_s >= o["reset_at"]:
-                    dev_ms = (dev_s - o["reset_at"]) * 1000.0
-                else:
-                    dev_ms += o["start_ms"]
-                ms = int(dev_ms)
-            if csv is not None:
-                row = csv[self._i]
-                data, _ = encode_cycle(self.codec, (row[4], row[5], row[6]), (row[1], row[2], row[3]), None, 25.0, ms)
-            else:
-                m = self.motion.at(dev_s)
-                data, _ = encode_cycle(self.codec, m.acc_g, m.gyro_dps, m.euler_deg, 25.0, ms)
-            if o["garbage"] and self._rng.random() < o["garbage"]:
-                data = bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(1, 12))) + data
-            if o["truth"]:
-                self.truth_ns.append(true_host)
-            self._queue.append((arrival, data))
-            self._i += 1
+                dev_ms = dev_ms + o["start_ms"]
+            ms = dev_ms.astype(np.int64) % 86_400_000
+            hh, rem = np.divmod(ms, 3_600_000)
+            mi, rem = np.divmod(rem, 60_000)
+            ss, msec = np.divmod(rem, 1000)
+            tp = np.zeros((n, 8), np.uint8)
+            tp[:, 0], tp[:, 1], tp[:, 2] = 26, 11, 23
+            tp[:, 3], tp[:, 4], tp[:, 5] = hh, mi, ss
+            tp[:, 6], tp[:, 7] = msec & 0xFF, msec >> 8
+            types.append(TIME)
+            payloads.append(tp)
+        if csv is not None:
+            acc, gyro, eul = csv[idx, 4:7], csv[idx, 1:4], None
+        else:
+            acc, gyro, eul = self.motion.at_many(dev_s)
+
+        def words(v: np.ndarray, full: float, fourth: int = 0) -> np.ndarray:
+            w = np.zeros((n, 4), "<i2")
+            w[:, :3] = np.clip(np.round(v / full * 32768.0), -32768, 32767)
+            w[:, 3] = fourth
+            return w.view(np.uint8).reshape(n, 8)
+
+        types += [ACC, GYRO]
+        payloads += [words(acc, 16.0, 2500), words(gyro, 2000.0)]
+        if eul is not None:
+            types.append(ANGLE)
+            payloads.append(words(eul, 180.0))
+        L = len(types)
+        wire = WitMotionCodec.encode_many(np.tile(np.array(types, np.uint8), n),
+                                          np.stack(payloads, axis=1).reshape(n * L, 8))
+        data = wire.tobytes()
+        step = L * 11
+        garbage = o["garbage"]
+        bad = self._nrng.random(n) < garbage if garbage else None
+        if o["truth"]:
+            self.truth_ns += true_host.tolist()
+        q = self._queue
+        for k, (a, th) in enumerate(zip(arrival.tolist(), true_host.tolist())):
+            piece = data[k * step:(k + 1) * step]
+            if bad is not None and bad[k]:
+                piece = self._nrng.integers(0, 256, int(self._nrng.integers(1, 12)), np.uint8).tobytes() + piece
+            q.append((a, piece, th))
+        return made
 
     def read(self, timeout: float) -> Chunk | None:
         if not self._open:
@@ -174,7 +220,9 @@ class SynthTransport(Transport):
             now = self.clock.now_ns()
             if self._unplugged(now):
                 self._open = False
-                self._queue.clear()
+                # what was taken before the unplug but not yet delivered is lost with the device
+                cut = self._t0 + int(self.opts["unplug_at"] * 1e9)  # type: ignore[operator]
+                self._queue = deque(e for e in self._queue if e[2] >= cut)
                 raise DeviceIOError(f"{self.url}: device disconnected (simulated unplug)", source=self.url)
             deadline = now + int(timeout * 1e9)
             if not self._queue:
@@ -191,11 +239,8 @@ class SynthTransport(Transport):
             self.clock.sleep_until_ns(arrival)
             return self._take(arrival, self.clock.now_ns())
         # virtual clock: deliver the next chunk at once, stamped with its simulated arrival
-        if not self._queue:
-            self._produce_until(self._virtual_now)
-            if not self._queue:
-                self._produce_until(2**62)
-            if not self._queue:
+        while not self._queue:
+            if self._produce_block() < 0:
                 raise EndOfStream(f"{self.url}: synthetic take finished", source=self.url)
         arrival = self._queue[0][0]
         self._virtual_now = max(self._virtual_now, arrival)
@@ -210,7 +255,7 @@ class SynthTransport(Transport):
         """Everything that arrives at ``arrival`` (one burst) as one chunk."""
         parts = []
         while self._queue and self._queue[0][0] <= arrival:
-            parts.append(self._queue.pop(0)[1])
+            parts.append(self._queue.popleft()[1])
         return Chunk(b"".join(parts), stamp)
 
 
