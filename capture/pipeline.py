@@ -186,22 +186,43 @@ class Capture:
             report = self.stop()
         return report
 
-    def run_offline(self, window_s: float = 5.0, stop: threading.Event | None = None,
-                    on_tick: Callable[[Capture, float], None] | None = None) -> CaptureReport:
-        """Drive every device from this thread, as fast as their sources allow, merging them by
-        recorded time in ``window_s`` steps: deterministic order on the bus, no reader threads.
-        Every device's transport must offer ``read_many(timeout, max_chunks, until_ns)`` (as an
-        as-fast-as-possible ``replay://`` does).
+    def run_merged(self, duration_s: float | None = None, window_s: float = 5.0,
+                   stop: threading.Event | None = None,
+                   on_tick: Callable[[Capture, float], None] | None = None, tick_s: float = 1.0) -> CaptureReport:
+        """Drive every device from this one thread, merged by recorded time: no reader threads, so
+        no contention between them, and a deterministic order on the bus.
+
+        Sources that may be read as fast as possible (``batches``: an as-fast-as-possible replay)
+        are read in ``window_s`` steps of recorded time and decoded in vectorised runs. Paced
+        sources (a replay at a speed factor) are read chunk by chunk, always the device whose next
+        chunk is due first; the transport sleeps until that chunk's deadline. Every transport must
+        offer ``first_time_ns()`` (as ``replay://`` does).
 
         Raises:
             ConfigError: a device's transport cannot be driven this way.
         """
         for d in self.devices:
-            if not getattr(d.transport, "batches", False):
-                raise ConfigError(f"device {d.name}: its transport cannot be driven offline")
+            if not hasattr(d.transport, "first_time_ns"):
+                raise ConfigError(f"device {d.name}: its transport cannot be driven by recorded time")
         self._t_start = self.clock.now_ns()
         publish_many = self.bus.publish_many
         active: list[Device] = []
+        next_tick = self._t_start + int(tick_s * 1e9)
+
+        def finished(d: Device) -> None:
+            d.state = DeviceState.FINISHED
+            self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(), "source exhausted"))
+            active.remove(d)
+
+        def time_up() -> bool:
+            now = self.clock.now_ns()
+            nonlocal next_tick
+            if on_tick and now >= next_tick:
+                on_tick(self, (now - self._t_start) / 1e9)
+                next_tick = now + int(tick_s * 1e9)
+            return (stop is not None and stop.is_set()) or (
+                duration_s is not None and now - self._t_start >= duration_s * 1e9)
+
         try:
             for d in self.devices:
                 try:
@@ -212,12 +233,13 @@ class Capture:
                     continue
                 self.bus.publish(DeviceEvent(d.name, EventKind.STREAMING, self.clock.now_ns()))
                 active.append(d)
-            firsts = [t for t in (d.transport.first_time_ns() for d in active) if t is not None]  # type: ignore[attr-defined]
+            batched = [d for d in active if getattr(d.transport, "batches", False)]
+            firsts = [t for t in (d.transport.first_time_ns() for d in batched) if t is not None]  # type: ignore[attr-defined]
             step = int(window_s * 1e9)
             edge = (min(firsts) if firsts else 0) + step
-            ticks = 0
-            while active and not (stop is not None and stop.is_set()):
-                for d in list(active):
+            while active and not time_up():
+                # as-fast-as-possible sources: everything up to the window edge, vectorised
+                for d in [d for d in active if getattr(d.transport, "batches", False)]:
                     try:
                         while True:
                             chunks = d.transport.read_many(0.0, 1 << 20, edge)  # type: ignore[attr-defined]
@@ -225,16 +247,29 @@ class Capture:
                                 break
                             publish_many(d.process_chunks(chunks))
                     except EndOfStream:
-                        d.state = DeviceState.FINISHED
-                        self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(),
-                                                     "source exhausted"))
-                        active.remove(d)
+                        finished(d)
                 edge += step
-                ticks += 1
-                if on_tick and ticks % 20 == 0:
-                    on_tick(self, (self.clock.now_ns() - self._t_start) / 1e9)
+                # paced sources: chunk by chunk, the earliest first, until the window edge
+                paced = [d for d in active if not getattr(d.transport, "batches", False)]
+                while paced and not time_up():
+                    times = [(d.transport.first_time_ns(), i) for i, d in enumerate(paced)]  # type: ignore[attr-defined]
+                    t_next, i = min((t, i) for t, i in times if t is not None) if any(
+                        t is not None for t, _ in times) else (None, 0)
+                    d = paced[i]
+                    try:
+                        items = d.poll(0.1)
+                    except EndOfStream:
+                        finished(d)
+                        paced.remove(d)
+                        continue
+                    if items:
+                        publish_many(items)
+                    if t_next is None:
+                        continue
+                    if batched and t_next >= edge:
+                        break
         except CaptureError as exc:
-            log.error("offline replay stopped: %s", exc)
+            log.error("replay stopped: %s", exc)
             raise
         finally:
             for d in self.devices:

@@ -145,10 +145,10 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
         set_timeline = getattr(d.transport, "set_timeline", None)
         if set_timeline is not None:
             set_timeline(start, t0)
-    if speed == 0 and not loop and duration_s is None:
-        report = cap.run_offline(stop=stop, on_tick=on_tick)
+    if speed == 0 and loop:
+        report = cap.run(duration_s, stop=stop, on_tick=on_tick)  # endless vectorised loops: reader threads
     else:
-        report = cap.run(duration_s, stop=stop, on_tick=on_tick)
+        report = cap.run_merged(duration_s, stop=stop, on_tick=on_tick)
     lateness: list[int] = []
     for d in cap.devices:
         lateness.extend(getattr(d.transport, "lateness_ns", []))

@@ -541,13 +541,10 @@ class SessionReader:
         return raw_block_span(blocks[0])[0], raw_block_span(blocks[-1])[1]
 
     def sample_blocks(self, streams: set[str] | None = None) -> Iterator[SampleBatch]:
-        for topic, blocks in self._msgs.items():
-            if not topic.startswith("/samples/"):
-                continue
-            name = topic[len("/samples/"):]
-            if streams is None or name in streams:
-                for data in blocks:
-                    yield decode_sample_block(name, data)
+        names = self.streams if streams is None else streams
+        for name in names:
+            for data in self._msgs.get(f"/samples/{name}", ()):
+                yield decode_sample_block(name, data)
 
     def samples(self, stream: str) -> SampleBatch:
         """All decoded samples of one stream as one batch."""

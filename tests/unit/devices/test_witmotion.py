@@ -14,6 +14,7 @@ from capture.errors import EndOfStream, ProtocolError
 from capture.sample import Chunk, Sample
 from devices import open_device
 from devices.codecs.witmotion import ACC, ANGLE, GYRO, WitMotionCodec, WitPacket
+from devices.codecs.witmotion import TIME as TIME_T
 from devices.witmotion import ACC_SCALE, GYRO_SCALE, encode_cycle
 
 words = st.tuples(*[st.integers(-32768, 32767)] * 4)
@@ -145,3 +146,13 @@ def test_real_imu_recording_through_codec_and_device(xio_csv):
     err = np.abs(bus[settled] - truth[settled])
     assert np.percentile(err, 99) <= 1_000_000 and err.max() <= 1_500_000
     d.close()
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([TIME_T, ACC, GYRO, ANGLE, 0x54, 0x59]), st.binary(min_size=8, max_size=8)),
+                min_size=1, max_size=40))
+def test_encode_many_equals_encode(pk):
+    c = WitMotionCodec()
+    types = np.array([t for t, _ in pk], np.uint8)
+    payloads = np.frombuffer(b"".join(p for _, p in pk), np.uint8).reshape(len(pk), 8)
+    assert WitMotionCodec.encode_many(types, payloads).tobytes() == b"".join(c.encode(WitPacket(t, p)) for t, p in pk)
