@@ -33,7 +33,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from capture.errors import SessionError, SessionExistsError
-from capture.sample import NO_TIME, Chunk, ChunkRun, ClockState, DeviceEvent, Direction, SampleBatch, StreamInfo
+from capture.sample import NO_TIME, Chunk, ChunkRun, ClockState, DeviceEvent, SampleBatch, StreamInfo
 
 log = logging.getLogger(__name__)
 
@@ -107,30 +107,10 @@ def concat_runs(runs: list[ChunkRun]) -> ChunkRun:
 
 
 def decode_raw_block(data: bytes) -> list[Chunk]:
-    data = bytes(data)
-    mv = memoryview(data)
-    (n,) = _hdr_raw.unpack_from(mv, 0)
-    o = _hdr_raw.size
-    t = _undelta(mv[o:o + 8 * n], n)
-    o += 8 * n
-    dirs = np.frombuffer(mv[o:o + n], np.uint8)
-    o += n
-    lens = np.frombuffer(mv[o:o + 4 * n], "<u4")
-    o += 4 * n
-    out = []
-    tl = t.tolist()
-    dl = dirs.tolist()
-    if max(dl, default=0) > 1:
-        raise ValueError("raw block has an unknown direction")
-    for i, ln in enumerate(lens.tolist()):
-        out.append(Chunk(data[o:o + ln], tl[i], _DIRECTIONS[dl[i]]))
-        o += ln
-    if o != len(data):
-        raise ValueError(f"raw block length mismatch ({o} != {len(data)})")
-    return out
+    """A raw block as a list of ``Chunk``s."""
+    return list(decode_raw_block_run(data))
 
 
-_DIRECTIONS = (Direction.RX, Direction.TX)
 
 
 def raw_block_span(data: bytes) -> tuple[int, int]:

@@ -6,21 +6,14 @@ from __future__ import annotations
 
 import math
 import random
-from typing import NamedTuple
 
 import numpy as np
 
 G = 9.80665
 
 
-class MotionSample(NamedTuple):
-    acc_g: tuple[float, float, float]        # specific force in the sensor frame, g
-    gyro_dps: tuple[float, float, float]     # body angular rate, deg/s
-    euler_deg: tuple[float, float, float]    # roll, pitch, yaw (ZYX), degrees
-
-
 class WavingMotion:
-    """Deterministic for a given seed; ``at(t)`` for any time in seconds."""
+    """Deterministic for a given seed; ``at_many(t)`` for any times in seconds."""
 
     def __init__(self, seed: int = 1, amplitude_deg: float = 40.0) -> None:
         rnd = random.Random(seed)
@@ -33,40 +26,9 @@ class WavingMotion:
             self.terms.append(terms)
         self.lin = [(rnd.uniform(0.2, 1.0), 2 * math.pi * rnd.uniform(0.5, 1.5), rnd.uniform(0, 2 * math.pi)) for _ in range(3)]
 
-    def at(self, t: float) -> MotionSample:
-        ang = []
-        rate = []
-        for terms in self.terms:
-            a = r = 0.0
-            for amp, w, ph in terms:
-                a += amp * math.sin(w * t + ph)
-                r += amp * w * math.cos(w * t + ph)
-            ang.append(a)
-            rate.append(r)
-        phi, theta, psi = ang
-        dphi, dtheta, dpsi = rate
-        sphi, cphi = math.sin(phi), math.cos(phi)
-        sth, cth = math.sin(theta), math.cos(theta)
-        sps, cps = math.sin(psi), math.cos(psi)
-        # body rates from ZYX Euler rates
-        p = dphi - dpsi * sth
-        q = dtheta * cphi + dpsi * cth * sphi
-        r = -dtheta * sphi + dpsi * cth * cphi
-        # world linear acceleration (m/s^2) plus gravity reaction, rotated into the body: R^T (a + g z)
-        ax, ay, az = (amp * math.sin(w * t + ph) for amp, w, ph in self.lin)
-        az += G
-        # R = Rz(psi) Ry(theta) Rx(phi); body = R^T world
-        r00, r01, r02 = cps * cth, cps * sth * sphi - sps * cphi, cps * sth * cphi + sps * sphi
-        r10, r11, r12 = sps * cth, sps * sth * sphi + cps * cphi, sps * sth * cphi - cps * sphi
-        r20, r21, r22 = -sth, cth * sphi, cth * cphi
-        bx = r00 * ax + r10 * ay + r20 * az
-        by = r01 * ax + r11 * ay + r21 * az
-        bz = r02 * ax + r12 * ay + r22 * az
-        d = math.degrees
-        return MotionSample((bx / G, by / G, bz / G), (d(p), d(q), d(r)), (d(phi), d(theta), d(psi)))
-
     def at_many(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``at`` for many times: (acc_g (n,3), gyro_dps (n,3), euler_deg (n,3))."""
+        """The motion at times ``t`` (s): specific force in the sensor frame (g, (n,3)), body angular
+        rate (deg/s, (n,3)) and roll, pitch, yaw (ZYX, degrees, (n,3))."""
         t = np.asarray(t, np.float64)
         ang = np.zeros((3, t.size))
         rate = np.zeros((3, t.size))

@@ -140,14 +140,7 @@ class ReplayTransport(Transport):
         if not self.batches:
             c = self.read(timeout)
             return [] if c is None else [c]
-        if not self._open:
-            raise DeviceIOError(f"{self.url}: read on a closed transport", source=self.url)
-        rx = self._rx
-        if self._i >= len(rx):
-            if not self.opts["loop"]:
-                raise EndOfStream(f"{self.url}: end of recording", source=self.url)
-            self._i = 0
-            self._pass += 1
+        rx = self._next_pass_if_done()
         end = min(len(rx), self._i + max_chunks)
         if until_ns is not None:
             end = min(end, int(np.searchsorted(self._rx_t, until_ns - self._pass * self._span, side="left")))
@@ -160,17 +153,24 @@ class ReplayTransport(Transport):
             part = ChunkRun(part.data, part.lengths, part.t_ns + shift, part.directions)
         return part
 
-    def read(self, timeout: float) -> Chunk | None:
+    def _next_pass_if_done(self) -> ChunkRun:
+        """The RX chunks, starting the next loop pass if this one is done.
+
+        Raises:
+            DeviceIOError: the transport is closed.
+            EndOfStream: the recording is over and looping is off.
+        """
         if not self._open:
             raise DeviceIOError(f"{self.url}: read on a closed transport", source=self.url)
-        rx = self._rx
-        if self._i >= len(rx):
+        if self._i >= len(self._rx):
             if not self.opts["loop"]:
                 raise EndOfStream(f"{self.url}: end of recording", source=self.url)
             self._i = 0
             self._pass += 1
-        c = rx[self._i]
-        c = Chunk(c.data, c.t_ns, Direction.RX)
+        return self._rx
+
+    def read(self, timeout: float) -> Chunk | None:
+        c = self._next_pass_if_done()[self._i]
         shift = self._pass * self._span
         t_rec = c.t_ns + shift
         speed = self.opts["speed"]
