@@ -40,7 +40,7 @@ from capture.sample import ClockState, DeviceClockSpec
 log = logging.getLogger(__name__)
 
 
-def lower_hull(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
+def lower_hull(xs: Sequence[float] | np.ndarray, ys: Sequence[float] | np.ndarray) -> list[int]:
     """Indices of the lower convex hull of points with strictly increasing x (collinear middle points
     excluded).
 

@@ -55,6 +55,7 @@ class StreamStats(Subscriber):
         c = self.streams.get(item.stream)
         if c is None:
             c = self.streams[item.stream] = StreamCounter()
+        seqs: tuple[int, ...]
         if type(item) is Sample:
             seqs = (item.seq,)
             c.samples += 1
@@ -153,6 +154,7 @@ class Capture:
         self.readers = [DeviceReader(d, self.bus, reconnect) for d in self.devices]
         self._t_start = 0
         self._stopped = False
+        self._report: CaptureReport | None = None
 
     def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST, name: str | None = None) -> Any:
         return self.bus.subscribe(sub, policy=policy, name=name)
@@ -283,7 +285,7 @@ class Capture:
 
     def stop(self) -> CaptureReport:
         """Stop readers, drain every subscriber (the recorder writes everything), close the session."""
-        if self._stopped:
+        if self._stopped and self._report is not None:
             return self._report
         self._stopped = True
         for r in self.readers:

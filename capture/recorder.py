@@ -109,7 +109,7 @@ class SessionRecorder(Subscriber):
         self._tick(self.clock.now_ns())
 
     def _undeclared(self, item: Sample | SampleBatch) -> None:
-        n = len(item.values) if type(item) is Sample else item.values.shape[1]
+        n = len(item.values) if isinstance(item, Sample) else int(item.values.shape[1])
         log.warning("recorder: stream %s was not declared; recording it with generic channel names", item.stream)
         dev = item.stream.split("/")[0]
         info = StreamInfo(item.stream, "unknown", tuple(f"c{i}" for i in range(n)), ("?",) * n, None,

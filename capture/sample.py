@@ -73,9 +73,8 @@ class SampleBatch:
             e = np.empty(0, np.int64)
             return cls(stream, e, e.copy(), e.copy(), e.copy(), np.empty((0, channels)))
         _, seq, th, td, tb, vals = zip(*samples)  # C-level transposition
-        if None in td:
-            td = [NO_TIME if x is None else x for x in td]
-        return cls(stream, np.array(seq, np.int64), np.array(th, np.int64), np.array(td, np.int64),
+        tdev = [NO_TIME if x is None else x for x in td] if None in td else td
+        return cls(stream, np.array(seq, np.int64), np.array(th, np.int64), np.array(tdev, np.int64),
                    np.array(tb, np.int64), np.array(vals, np.float64).reshape(n, channels))
 
     @classmethod

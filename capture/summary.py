@@ -13,7 +13,7 @@ from capture.session import SessionReader
 def summarize(reader: SessionReader) -> dict[str, Any]:
     """A JSON-ready summary of a session (see ``perfcap info --json``)."""
     batches = reader.all_samples()
-    streams = []
+    streams: list[dict[str, Any]] = []
     t_min: int | None = None
     t_max: int | None = None
     for name, info in reader.streams.items():

@@ -58,7 +58,7 @@ class ReplayTransport(Transport):
             raise ConfigError(f"{self.url}: no device {name!r} in the session (it has: {', '.join(devs) or 'none'})",
                               source=self.url)
         self.record: DeviceRecord = devs[name]
-        self._chunks: list[Chunk] | None = None
+        self._chunks: ChunkRun | None = None
         self._open = False
         self._i = 0
         self._pass = 0
