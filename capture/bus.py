@@ -134,6 +134,10 @@ class Subscription:
     def offer(self, item: Any) -> None:  # replaced per policy in __init__
         raise NotImplementedError
 
+    def offer_detached(self, item: Any) -> None:
+        with self._lock:
+            self.dropped += 1
+
     def _offer_keep_newest(self, item: Any) -> None:
         q = self._q
         n = q.qsize()
@@ -212,6 +216,8 @@ class Subscription:
                         log.warning("subscriber %s has caught up", self.name)
                         self._warn_level = 0
             if self.detached:
+                with self._lock:
+                    self.dropped += 1  # queued for a subscriber that was detached: counted, never silent
                 continue
             try:
                 sub.on_item(item)
@@ -233,8 +239,9 @@ class Subscription:
             pass
         if self.errors >= self.max_errors and not self.detached:
             self.detached = True
-            log.error("subscriber %s detached after %d errors; other subscribers continue", self.name, self.errors)
-            self.bus.unsubscribe(self, wait=False)
+            log.error("subscriber %s detached after %d errors; what it had queued and everything after is "
+                      "counted as dropped; other subscribers continue", self.name, self.errors)
+            self.bus._detached(self)
 
     def stats(self) -> SubscriptionStats:
         pending = self._q.qsize()
@@ -319,7 +326,18 @@ class SampleBus:
                     s.offer(item)
 
     def stats(self) -> list[SubscriptionStats]:
+        """Counters of every subscription, detached ones included."""
         return [s.stats() for s in self._subs]
+
+    def _detached(self, s: Subscription) -> None:
+        """A failing subscriber stays on the bus, counting (as dropped) every item it no longer gets,
+        so its losses show in every report; an event tells the other subscribers (the recorder)."""
+        s.offer = s.offer_detached  # type: ignore[method-assign]
+        ev = DeviceEvent(s.name, EventKind.FAILED, self.clock.now_ns(),
+                         f"subscriber detached after {s.errors} errors; its items are counted as dropped")
+        for other in self._subs:
+            if other is not s and DeviceEvent in other.accepts and not other.detached:
+                other.offer(ev)
 
     def close(self, timeout: float | None = None) -> None:
         """Drain and stop every subscriber (each gets everything already published)."""

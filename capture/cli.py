@@ -172,17 +172,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.json:
         import numpy as np
         late = np.array(rep.lateness_ns, dtype=float) / 1e6 if rep.lateness_ns else None
-        out(json.dumps({"recorded_s": rep.recorded_span_s, "wall_s": wall, "streams": rep.capture.streams,
+        out(json.dumps({"recorded_s": rep.recorded_span_s, "replayed_s": rep.replayed_span_s,
+                        "stopped_early": rep.stopped_early, "wall_s": wall, "streams": rep.capture.streams,
                         "verification": ver,
                         "lateness_ms": None if late is None else {"p50": float(np.percentile(late, 50)),
                                                                   "p99": float(np.percentile(late, 99))}}))
     else:
-        out(f"replayed {rep.recorded_span_s:.2f} s of recording in {wall:.2f} s"
+        out(f"replayed {rep.replayed_span_s:.2f} s of {rep.recorded_span_s:.2f} s of recording in {wall:.2f} s"
+            + (" (stopped early: compared what was replayed)" if rep.stopped_early else "")
             + (f" ({rep.recorded_span_s / wall:.0f}x real time)" if wall > 0 and speed == 0 else ""))
         for name, s in rep.capture.streams.items():
             out(f"  {name:24s} {s['samples']:8d} samples")
         if ver is not None:
-            if ver["equal"]:
+            unver = [s for s, v in ver["streams"].items() if v.get("unverifiable")]
+            if unver:
+                out(f"  not verified (their recorded blocks are damaged): {', '.join(unver)}")
+            if ver["equal"] or rep.stopped_early and not any(v["mismatches"] for v in ver["streams"].values()):
                 n = sum(v["compared"] for v in ver["streams"].values())
                 out(f"verified: all {n} replayed samples equal the recorded ones")
             else:
@@ -195,7 +200,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if failed:
         print(f"perfcap: error: device(s) failed during replay: {', '.join(failed)}", file=sys.stderr)
         return EXIT_CHECK_FAILED
-    if ver is not None and not ver["equal"] and not args.loop:
+    if ver is not None and not ver["equal"] and not args.loop and not rep.stopped_early:
         print("perfcap: error: replayed samples differ from the recorded ones", file=sys.stderr)
         return EXIT_CHECK_FAILED
     return 0
@@ -215,6 +220,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     out(f"{s['path']}: {s['size_bytes'] / 1e6:.2f} MB, {s['duration_s']:.3f} s, perfcap {s['perfcap_version']}")
     if not s["complete"]:
         out(f"  NOT CLOSED CLEANLY: {s['truncated']}; everything before that point is readable")
+    if s["damaged"]:
+        out("  DAMAGED (skipped, the rest is readable): "
+            + ", ".join(f"{n} x {what}" for what, n in sorted(s["damaged"].items())))
     for d in s["devices"]:
         out(f"  device {d['name']}: {d['kind']} @ {d['url']}")
     for st in s["streams"]:
@@ -269,19 +277,24 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
         total += len(seq)
     ev_path = os.path.join(args.output, f"_events.{ext}")
-    with open(ev_path, "w", newline="") as f:
-        evs = reader.events()
-        if ext == "csv":
-            w = csv.writer(f)
-            w.writerow(["t_host_ns", "source", "kind", "detail"])
-            for e in evs:
-                w.writerow([e["t_host_ns"], e["source"], e["kind"], e["detail"]])
-        else:
-            for e in evs:
-                f.write(json.dumps(e) + "\n")
+    evs = reader.events()
+    try:
+        with open(ev_path, "w", newline="") as f:
+            if ext == "csv":
+                w = csv.writer(f)
+                w.writerow(["t_host_ns", "source", "kind", "detail"])
+                for e in evs:
+                    w.writerow([e.get("t_host_ns"), e.get("source"), e.get("kind"), e.get("detail")])
+            else:
+                for e in evs:
+                    f.write(json.dumps(e) + "\n")
+    except OSError as exc:
+        raise ConfigError(f"cannot write {ev_path}: {exc.strerror or exc}") from None
     out(f"exported {total} samples of {len(reader.streams)} streams to {args.output}/ ({ext})")
     if reader.truncated:
         out(f"note: the session was not closed cleanly ({reader.truncated}); exported what it holds")
+    if reader.damaged:
+        out("note: damaged parts were skipped: " + ", ".join(f"{n} x {w}" for w, n in sorted(reader.damaged.items())))
     return 0
 
 

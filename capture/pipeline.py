@@ -212,6 +212,7 @@ class Capture:
         next_tick = self._t_start + int(tick_s * 1e9)
 
         def finished(d: Device) -> None:
+            publish_many(d.finish())
             d.state = DeviceState.FINISHED
             self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(), "source exhausted"))
             active.remove(d)
@@ -275,6 +276,8 @@ class Capture:
             raise
         finally:
             for d in self.devices:
+                if d in active:  # stopped early: still emit what the device had assembled
+                    publish_many(d.finish())
                 try:
                     d.close()
                 except CaptureError:

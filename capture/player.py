@@ -92,6 +92,8 @@ class ReplayReport:
     verification: dict[str, Any] | None
     lateness_ns: list[int] = field(default_factory=list)
     recorded_span_s: float = 0.0
+    replayed_span_s: float = 0.0
+    stopped_early: bool = False
 
 
 def session_span(reader: SessionReader) -> tuple[int, int]:
@@ -152,7 +154,22 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     lateness: list[int] = []
     for d in cap.devices:
         lateness.extend(getattr(d.transport, "lateness_ns", []))
-    return ReplayReport(report, verifier.result() if verifier else None, lateness, (t_end - t0) / 1e9)
+    result = verifier.result() if verifier else None
+    if result is not None:
+        # Streams whose recorded blocks (or whose device's raw blocks) were damaged cannot be compared.
+        bad = {t for t in reader.damaged if t.startswith("block of ")}
+        for s, v in result["streams"].items():
+            dev = s.split("/")[0]
+            if f"block of /samples/{s}" in bad or f"block of /raw/{dev}" in bad:
+                v["unverifiable"] = True
+        result["equal"] = all(v.get("unverifiable") or (v["mismatches"] == 0 and v["missing"] == 0)
+                              for v in result["streams"].values()) and not result["unexpected"]
+    firsts = [c.first_bus_ns for c in cap.stats.streams.values() if c.first_bus_ns is not None]
+    lasts = [c.last_bus_ns for c in cap.stats.streams.values() if c.last_bus_ns is not None]
+    replayed = (max(lasts) - min(firsts)) / 1e9 if firsts and lasts else 0.0
+    early = bool((stop is not None and stop.is_set()) or
+                 (not loop and any(d.get("state") not in ("finished", "failed") for d in report.devices.values())))
+    return ReplayReport(report, result, lateness, (t_end - t0) / 1e9, replayed, early)
 
 
 __all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "session_span"]

@@ -126,9 +126,10 @@ class SessionRecorder(Subscriber):
             if now >= self._next_flush:
                 self.writer.flush()
                 self._next_flush = now + self.flush_ns
-        except SessionError as exc:
-            self.failed = exc
-            log.error("recorder: %s; recording stopped, data up to the last flush is kept", exc)
+        except Exception as exc:  # noqa: BLE001 - a writing failure stops the recording loudly, never silently
+            self.failed = exc if isinstance(exc, SessionError) else SessionError(
+                f"internal error while writing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
+            log.error("recorder: %s; recording stopped, data up to the last flush is kept", self.failed)
 
     def encode(self, now: int) -> None:
         """Turn everything buffered into blocks in the writer."""
@@ -181,9 +182,10 @@ class SessionRecorder(Subscriber):
                 self.summary_extra["recorder_max_pending"] = st.max_pending
             self.writer.close({"samples": self.counts, "raw_chunks": self.raw_chunks,
                                "raw_bytes": self.writer.bytes_raw, **self.summary_extra})
-        except SessionError as exc:
-            self.failed = exc
-            log.error("recorder: %s", exc)
+        except Exception as exc:  # noqa: BLE001
+            self.failed = exc if isinstance(exc, SessionError) else SessionError(
+                f"internal error while closing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
+            log.error("recorder: %s", self.failed)
 
 
 def _identity_dict(identity: DeviceIdentity) -> dict[str, Any]:

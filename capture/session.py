@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 
 FORMAT_VERSION = "1"
 RAW_ENCODING = "perfcap.raw.v1"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 SAMPLES_ENCODING = "perfcap.samples.v1"
 
 RAW_SCHEMA_DOC = (
@@ -395,6 +396,7 @@ class SessionReader:
             raise SessionError(f"{path} is a directory, not a session file", path=path)
         self.size = os.path.getsize(path)
         scan = _Scan()
+        self.damaged: dict[str, int] = {}
         self._msgs: dict[str, list[bytes]] = {}
         for topic, _lt, _meta, data in self._records(scan, progress=progress):
             lst = self._msgs.get(topic)
@@ -443,21 +445,68 @@ class SessionReader:
         """Why reading stopped before the footer (a killed recorder), or ``None`` for a complete file."""
         return self._scan.truncated
 
+    def _damage(self, what: str, why: BaseException | str) -> None:
+        """Count a damaged record or block (skipped, never fatal); log the first of each kind."""
+        n = self.damaged.get(what, 0) + 1
+        self.damaged[what] = n
+        if n == 1:
+            log.warning("%s: damaged %s skipped (%s); further ones are counted", self.path, what,
+                        why if isinstance(why, str) else f"{type(why).__name__}: {why}")
+
     def _records(self, scan: _Scan, progress: Any = None) -> Iterator[tuple[str, int, dict[str, str], Any]]:
-        """Yield (topic, log_time, channel metadata, message data) for messages; fill ``scan``."""
-        from mcap.exceptions import McapError
-        from mcap.records import Attachment, Channel, Footer, Message, Metadata
-        from mcap.stream_reader import StreamReader
+        """Yield (topic, log_time, channel metadata, message data) for messages; fill ``scan``.
+
+        Records are length-prefixed, so a record that does not parse (or a chunk whose CRC does not
+        match) is skipped and counted in ``damaged``, and reading goes on after it. Reading stops
+        early only where the file ends or a length is impossible (``truncated`` says where).
+        """
+        import io
+
+        from mcap.data_stream import ReadDataStream
+        from mcap.opcode import Opcode
+        from mcap.records import Attachment, Channel, Chunk, Message, Metadata
+        from mcap.stream_reader import breakup_chunk
 
         try:
             f = open(self.path, "rb")
         except OSError as exc:
             raise SessionError(f"cannot read {self.path}: {exc.strerror or exc}", path=self.path) from exc
         channels: dict[int, Channel] = {}
+        parsers: dict[int, Any] = {Opcode.CHANNEL: Channel.read, Opcode.METADATA: Metadata.read,
+                                   Opcode.ATTACHMENT: Attachment.read, Opcode.CHUNK: Chunk.read}
+        hdr = struct.Struct("<BQ")
         try:
-            try:
-                reader = StreamReader(f, record_size_limit=1 << 30)
-                for rec in reader.records:
+            if f.read(8) != MCAP_MAGIC:
+                raise SessionError(f"{self.path} is not a session file (not MCAP)", path=self.path)
+            while True:
+                pos = f.tell()
+                head = f.read(hdr.size)
+                if len(head) < hdr.size:
+                    scan.truncated = f"file ends at byte {pos} without the MCAP footer (recording cut short)"
+                    return
+                opcode, length = hdr.unpack(head)
+                if length > max(0, self.size - pos - hdr.size):
+                    scan.truncated = f"file ends inside a record at byte {pos} (recording cut short)"
+                    return
+                if opcode == Opcode.FOOTER:
+                    return
+                body = f.read(length)
+                if progress is not None:
+                    progress(f.tell(), self.size)
+                if opcode not in parsers and opcode != Opcode.MESSAGE:
+                    continue  # indexes, statistics, schemas, data end: not needed to read a session
+                try:
+                    rds = ReadDataStream(io.BytesIO(body))
+                    if opcode == Opcode.MESSAGE:
+                        records: list[Any] = [Message.read(rds, length)]
+                    elif opcode == Opcode.CHUNK:
+                        records = breakup_chunk(Chunk.read(rds), validate_crc=True)
+                    else:
+                        records = [parsers[opcode](rds)]
+                except Exception as exc:  # noqa: BLE001 - any parse failure is damage, counted
+                    self._damage("MCAP record" if opcode != Opcode.CHUNK else "MCAP chunk", exc)
+                    continue
+                for rec in records:
                     if isinstance(rec, Message):
                         ch = channels.get(rec.channel_id)
                         if ch is not None:
@@ -465,27 +514,21 @@ class SessionReader:
                     elif isinstance(rec, Channel):
                         channels[rec.id] = rec
                         if rec.topic.startswith("/samples/"):
-                            info = StreamInfo.from_json(rec.metadata["stream_info"])
+                            try:
+                                info = StreamInfo.from_json(rec.metadata["stream_info"])
+                            except (KeyError, TypeError, ValueError) as exc:
+                                self._damage("stream description", exc)
+                                continue
                             scan.streams[info.name] = info
                     elif isinstance(rec, Metadata):
-                        self._metadata(scan, rec.name, rec.metadata)
-                        if progress is not None:
-                            progress(f.tell(), self.size)
+                        try:
+                            self._metadata(scan, rec.name, rec.metadata)
+                        except (KeyError, TypeError, ValueError) as exc:
+                            self._damage(f"metadata record {rec.name!r}", exc)
                     elif isinstance(rec, Attachment):
                         dev, _, key = rec.name.partition("/")
                         if dev in scan.devices:
                             scan.devices[dev].descriptors[key] = rec.data
-                    elif isinstance(rec, Footer):
-                        break
-                    elif progress is not None:
-                        progress(f.tell(), self.size)
-            except (McapError, EOFError, struct.error, ValueError, KeyError, OSError) as exc:
-                if isinstance(exc, McapError) and "magic" in str(exc).lower() and f.tell() <= 16:
-                    raise SessionError(f"{self.path} is not a session file (not MCAP)", path=self.path) from None
-                why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-                scan.truncated = f"file ends inside a record at or before byte {f.tell()} ({why})"
-            except Exception as exc:  # zstd errors and other codec failures of a damaged tail
-                scan.truncated = f"damaged data at or before byte {f.tell()} ({type(exc).__name__}: {exc})"
         finally:
             f.close()
 
@@ -501,30 +544,38 @@ class SessionReader:
                                             json.loads(m["identity"]), json.loads(m["streams"]))
 
     # -- data access ---------------------------------------------------------------------------------
+    def _decoded(self, topic: str, decode: Any) -> Iterator[Any]:
+        for data in self._msgs.get(topic, ()):
+            try:
+                out = decode(data)
+            except Exception as exc:  # noqa: BLE001 - a damaged block is skipped and counted
+                self._damage(f"block of {topic}", exc)
+                continue
+            yield out
+
     def raw_chunks(self, device: str) -> Iterator[Chunk]:
-        """Every recorded chunk of a device, in order."""
-        for data in self._msgs.get(f"/raw/{device}", ()):
-            yield from decode_raw_block(data)
+        """Every recorded chunk of a device, in order (damaged blocks skipped and counted)."""
+        for run in self._decoded(f"/raw/{device}", decode_raw_block_run):
+            yield from run
 
     def raw_run(self, device: str) -> ChunkRun:
         """Every recorded chunk of a device as one ``ChunkRun``."""
-        blocks = self._msgs.get(f"/raw/{device}", [])
-        if not blocks:
+        runs = list(self._decoded(f"/raw/{device}", decode_raw_block_run))
+        if not runs:
             e = np.empty(0, np.int64)
             return ChunkRun(b"", e, e.copy(), np.empty(0, np.uint8))
-        return concat_runs([decode_raw_block_run(b) for b in blocks])
+        return concat_runs(runs)
 
     def first_and_last_chunk_ns(self, device: str) -> tuple[int, int] | None:
-        blocks = self._msgs.get(f"/raw/{device}")
-        if not blocks:
+        spans = list(self._decoded(f"/raw/{device}", raw_block_span))
+        if not spans:
             return None
-        return raw_block_span(blocks[0])[0], raw_block_span(blocks[-1])[1]
+        return spans[0][0], spans[-1][1]
 
     def sample_blocks(self, streams: set[str] | None = None) -> Iterator[SampleBatch]:
         names = self.streams if streams is None else streams
         for name in names:
-            for data in self._msgs.get(f"/samples/{name}", ()):
-                yield decode_sample_block(name, data)
+            yield from self._decoded(f"/samples/{name}", lambda data, name=name: decode_sample_block(name, data))
 
     def samples(self, stream: str) -> SampleBatch:
         """All decoded samples of one stream as one batch."""
@@ -538,11 +589,11 @@ class SessionReader:
         return {s: self.samples(s) for s in self.streams}
 
     def clock_states(self, stream: str | None = None) -> list[dict[str, Any]]:
-        out = []
-        for topic, blocks in self._msgs.items():
+        out: list[dict[str, Any]] = []
+        for topic in list(self._msgs):
             if topic.startswith("/clock/") and (stream is None or topic == f"/clock/{stream}"):
-                out += [json.loads(d) for d in blocks]
+                out += self._decoded(topic, json.loads)
         return out
 
     def events(self) -> list[dict[str, Any]]:
-        return [json.loads(d) for d in self._msgs.get("/events", ())]
+        return list(self._decoded("/events", json.loads))

@@ -63,6 +63,7 @@ def summarize(reader: SessionReader) -> dict[str, Any]:
         "streams": streams,
         "clock_sync": clocks,
         "events": kinds,
+        "damaged": dict(reader.damaged),
         "raw_bytes": summ.get("raw_bytes"),
         "recorder_dropped": summ.get("recorder_dropped", 0 if summ else None),
     }

@@ -225,18 +225,43 @@ class Device(abc.ABC):
                                    f"{self.codec.stats.errors} errors, {self.codec.stats.skipped_bytes} bytes skipped"))
         if not frames:
             return out
+        readings = [r for f in frames for r in self.frame_to_readings(f)]
+        return self._stamp_readings(readings, chunk.t_ns, out)
+
+    def drain_readings(self) -> list[Reading]:
+        """Readings the device has assembled but not yet emitted (e.g. a cycle whose last packet
+        would only be recognised by the next one). Called at the end of a take. Default: none."""
+        return []
+
+    def finish(self) -> list[Any]:
+        """End of the take (end of stream, or stop): emit pending readings, stamped with the last
+        arrival, and count bytes of an unfinished frame as skipped. Returns bus items."""
+        out: list[Any] = []
+        left = self.codec.buffered
+        if left:
+            self.codec.reset()
+            log.info("device %s: %d bytes of an unfinished frame at the end of the take (counted as skipped)",
+                     self.name, left)
+        readings = self.drain_readings()
+        if readings and self.stats.last_seen_ns is not None:
+            self._stamp_readings(readings, self.stats.last_seen_ns, out)
+        return out
+
+    def _stamp_readings(self, readings: list[Reading], t: int, out: list[Any]) -> list[Any]:
+        """Stamp the readings that completed in a chunk that arrived at ``t``; append bus items to ``out``."""
+        if not readings:
+            return out
         if self._one_clock:
-            return self._stamp_one_clock(frames, chunk.t_ns, out)
+            return self._stamp_one_clock(readings, t, out)
+        st = self.stats
         groups: dict[int, list[Reading]] = {}
         order: list[tuple[int, int]] = []
-        for f in frames:
-            for r in self.frame_to_readings(f):
-                g = groups.get(r.stream)
-                if g is None:
-                    g = groups[r.stream] = []
-                order.append((r.stream, len(g)))
-                g.append(r)
-        t = chunk.t_ns
+        for r in readings:
+            g = groups.get(r.stream)
+            if g is None:
+                g = groups[r.stream] = []
+            order.append((r.stream, len(g)))
+            g.append(r)
         times: dict[int, tuple[list[int | None], list[int]]] = {}
         # device-clocked streams: one stamp per clock domain, readings in emission order
         ticks_by: dict[int, list[int]] = {si: self._ticks_of(si, rs) for si, rs in groups.items()
@@ -292,12 +317,9 @@ class Device(abc.ABC):
                 out.append(cs)
         return out
 
-    def _stamp_one_clock(self, frames: list[Any], t: int, out: list[Any]) -> list[Any]:
-        """``process_chunk`` for devices whose streams all run on one device clock (the common case):
+    def _stamp_one_clock(self, readings: list[Reading], t: int, out: list[Any]) -> list[Any]:
+        """``_stamp_readings`` for devices whose streams all run on one device clock (the common case):
         one stamp call, readings in emission order, the same results as the general path."""
-        readings = [r for f in frames for r in self.frame_to_readings(f)]
-        if not readings:
-            return out
         streams = self.streams
         last_ticks = self._last_ticks
         ticks: list[int] = []
@@ -581,6 +603,7 @@ class DeviceReader:
                 try:
                     items = dev.poll(self.poll_timeout)
                 except EndOfStream:
+                    publish_many(dev.finish())
                     dev.state = DeviceState.FINISHED
                     self._event(EventKind.FINISHED, "source exhausted")
                     return
@@ -592,6 +615,7 @@ class DeviceReader:
                     continue
                 if items:
                     publish_many(items)
+            publish_many(dev.finish())
             dev.state = DeviceState.CLOSED
         except CaptureError as exc:
             self.error = exc
@@ -601,7 +625,9 @@ class DeviceReader:
         except Exception as exc:  # noqa: BLE001 - a bug in one device must not take the others down
             self.error = exc
             dev.state = DeviceState.FAILED
-            log.exception("device %s stopped by an internal error", dev.name)
+            log.error("device %s stopped by an internal error: %s: %s (rerun with -vv for the traceback)",
+                      dev.name, type(exc).__name__, exc)
+            log.debug("traceback of the internal error in device %s", dev.name, exc_info=True)
             self._event(EventKind.FAILED, f"internal error: {type(exc).__name__}: {exc}")
         finally:
             try:

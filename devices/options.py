@@ -6,6 +6,7 @@ checked here, and an unknown key or a bad value raises ``ConfigError`` that show
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 from collections.abc import Mapping
@@ -30,7 +31,7 @@ class Option:
     def form(self) -> str:
         if self.choices:
             return "|".join(self.choices)
-        return {int: "INT", float: "NUMBER", bool: "true|false", str: "TEXT"}.get(self.type, "VALUE")
+        return {int: "INT", float: "NUMBER (finite)", bool: "true|false", str: "TEXT"}.get(self.type, "VALUE")
 
     def coerce(self, key: str, value: Any, where: str) -> Any:
         try:
@@ -51,6 +52,8 @@ class Option:
                 if isinstance(value, bool):
                     raise ValueError
                 v = float(value)
+                if not math.isfinite(v):
+                    raise ValueError
             else:
                 v = str(value)
         except (TypeError, ValueError):
@@ -58,7 +61,9 @@ class Option:
         if self.choices and v not in self.choices:
             raise ConfigError(f"{where}: option {key}={value!r} must be one of {self.form()}", source=where)
         if self.min is not None and v < self.min or self.max is not None and v > self.max:
-            raise ConfigError(f"{where}: option {key}={value!r} must be within [{self.min}, {self.max}]", source=where)
+            rng = (f"within [{self.min:g}, {self.max:g}]" if self.min is not None and self.max is not None
+                   else f"at least {self.min:g}" if self.min is not None else f"at most {self.max:g}")
+            raise ConfigError(f"{where}: option {key}={value!r} must be {rng}", source=where)
         return v
 
 

@@ -204,6 +204,9 @@ class WitMotionImu(Device):
             out.append(Reading(QUATS, tuple(x * QUAT_SCALE for x in w), ticks))
         return out
 
+    def drain_readings(self) -> list[Reading]:
+        return self._emit() if self._cycle else []
+
     def reset_after_reconnect(self) -> int:
         self._cycle = {}
         self._order = []

@@ -36,7 +36,7 @@ class SynthTransport(Transport):
     usage = "synth://imu?rate=HZ&seed=N"
     options = {
         "rate": Option(float, 200.0, "readings per second", min=1.0, max=2000.0),
-        "seed": Option(int, 1, "motion and noise seed"),
+        "seed": Option(int, 1, "motion and noise seed", min=0),
         "device_clock": Option(bool, True, "send time packets (a device clock)"),
         "drift_ppm": Option(float, 0.0, "device clock runs fast by this much", min=-5000, max=5000),
         "latency_ms": Option(float, 1.0, "fixed link latency", min=0.0),

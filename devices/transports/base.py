@@ -10,7 +10,7 @@ from __future__ import annotations
 import abc
 from typing import Any, ClassVar
 from collections.abc import Mapping
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import parse_qsl, unquote, urlsplit
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
@@ -108,13 +108,17 @@ def split_url(url: str) -> tuple[str, str, dict[str, str]]:
     """
     if "://" not in url:
         raise ConfigError(f"invalid transport URL {url!r}: expected SCHEME://ADDRESS[?key=value&...]", source=url)
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError as exc:
+        raise ConfigError(f"invalid transport URL {url!r}: {exc}; expected SCHEME://ADDRESS[?key=value&...]",
+                          source=url) from None
     scheme = parts.scheme.lower()
     if not scheme or not scheme.replace("+", "").replace("-", "").isalnum():
         raise ConfigError(f"invalid transport URL {url!r}: expected SCHEME://ADDRESS[?key=value&...]", source=url)
-    address = parts.netloc + parts.path
+    address = unquote(parts.netloc + parts.path)  # %20 and friends: paths with spaces, '#', '?' or '%'
     if parts.fragment:
-        address += "#" + parts.fragment
+        address += "#" + unquote(parts.fragment)
     opts: dict[str, str] = {}
     try:
         pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))

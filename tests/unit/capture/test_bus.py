@@ -127,17 +127,22 @@ def test_crashing_subscriber_is_counted_then_detached_others_continue(caplog):
 
     bus = SampleBus()
     boom = Boom()
+    boom.accepts = frozenset({Sample})
     ok = Collect()
     b = bus.subscribe(boom, max_errors=5, name="boom")
     bus.subscribe(ok)
     with caplog.at_level(logging.ERROR):
         for i in range(100):
             bus.publish(s(i))
+        listed = [x.name for x in bus.stats()]
         bus.close()
-    assert len(ok.items) == 100
+    assert len([x for x in ok.items if isinstance(x, Sample)]) == 100
     assert b.errors == 5 and b.detached
     assert len(boom.errors) == 5
-    assert b not in bus.subscriptions
+    # still in the reports, and every item it did not get is counted as dropped
+    assert "boom" in listed and b.dropped == 95
+    failed = [x for x in ok.items if isinstance(x, DeviceEvent) and x.kind is EventKind.FAILED]
+    assert len(failed) == 1 and failed[0].source == "boom"
     assert any("detached" in r.message for r in caplog.records)
 
 
