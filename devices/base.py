@@ -12,6 +12,7 @@ from __future__ import annotations
 import abc
 import enum
 import logging
+import math
 import threading
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple
@@ -101,7 +102,8 @@ class Device(abc.ABC):
         self.codec = self.codec_cls(strict=strict)
         self.state = DeviceState.CLOSED
         self.stats = DeviceStats()
-        self.identity = DeviceIdentity(kind=self.kind, name=name, url=transport.url)
+        hint = {k: v for k, v in transport.identity_hint().items() if v is not None}
+        self.identity = DeviceIdentity(kind=self.kind, name=name, url=transport.url, **hint)
         self.streams: list[StreamInfo] = self.declare_streams()
         self._seq = [0] * len(self.streams)
         self._build_domains()
@@ -565,6 +567,7 @@ class DeviceReader:
         self.bus = bus
         self.policy = policy
         self.poll_timeout = poll_timeout
+        self.presence_poll_s = 0.02
         self._stop = threading.Event()
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name=f"reader-{device.name}", daemon=True)
@@ -657,7 +660,12 @@ class DeviceReader:
         dev.state = DeviceState.RECONNECTING
         self._event(EventKind.RECONNECTING, str(exc))
         delay = pol.initial_s
-        while not self._stop.wait(delay):
+        was_present = dev.transport.present()
+        while True:
+            go = self._wait_for_device(delay, was_present)
+            if go is None:
+                return False
+            was_present = go
             try:
                 dev.transport.close()
             except DeviceError:
@@ -681,4 +689,23 @@ class DeviceReader:
             self._event(EventKind.RECONNECTED, f"gap {gap:.3f} s; {dropped} partial bytes discarded")
             log.warning("device %s is back after %.2f s", dev.name, gap)
             return True
-        return False
+
+    def _wait_for_device(self, delay: float, was_present: bool | None) -> bool | None:
+        """Wait ``delay`` seconds before the next open attempt, but go at once when the transport
+        sees the device come back (absent -> present). Returns whether it is present now (None:
+        stop was asked)."""
+        transport = self.device.transport
+        if was_present is None:
+            return None if self._stop.wait(delay) else False
+        step = min(self.presence_poll_s, delay) if delay > 0 else 0.0
+        steps = max(1, math.ceil(delay / step)) if step > 0 else 1
+        present: bool | None = was_present
+        for _ in range(steps):
+            if self._stop.wait(step):
+                return None
+            present = transport.present()
+            if present and not was_present:
+                return True
+            if present is not None:
+                was_present = present
+        return bool(present)

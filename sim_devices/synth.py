@@ -21,7 +21,8 @@ from collections.abc import Mapping
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
 from capture.sample import Chunk
-from devices.codecs.witmotion import ACC, ANGLE, GYRO, TIME, WitMotionCodec
+from devices.codecs.witmotion import WitMotionCodec
+from sim_devices.frames import witmotion_wire
 from devices.options import Option
 from devices.transports.base import Transport
 from sim_devices.motion import WavingMotion
@@ -160,46 +161,18 @@ class SynthTransport(Transport):
         prev = self._queue[-1][0] if self._queue else self._last_arrival
         arrival = np.maximum.accumulate(np.maximum(arrival, prev))  # a byte pipe keeps order
         self._last_arrival = int(arrival[-1])
-        # packets of each cycle: [time], acc, gyro, [angle]
-        types: list[int] = []
-        payloads: list[np.ndarray] = []
+        dev_ms = None
         if o["device_clock"]:
             dev_ms = dev_s * 1000.0
             if o["reset_at"]:
                 dev_ms = np.where(dev_s >= o["reset_at"], (dev_s - o["reset_at"]) * 1000.0, dev_ms + o["start_ms"])
             else:
                 dev_ms = dev_ms + o["start_ms"]
-            ms = dev_ms.astype(np.int64) % 86_400_000
-            hh, rem = np.divmod(ms, 3_600_000)
-            mi, rem = np.divmod(rem, 60_000)
-            ss, msec = np.divmod(rem, 1000)
-            tp = np.zeros((n, 8), np.uint8)
-            tp[:, 0], tp[:, 1], tp[:, 2] = 26, 11, 23
-            tp[:, 3], tp[:, 4], tp[:, 5] = hh, mi, ss
-            tp[:, 6], tp[:, 7] = msec & 0xFF, msec >> 8
-            types.append(TIME)
-            payloads.append(tp)
         if csv is not None:
             acc, gyro, eul = csv[idx, 4:7], csv[idx, 1:4], None
         else:
             acc, gyro, eul = self.motion.at_many(dev_s)
-
-        def words(v: np.ndarray, full: float, fourth: int = 0) -> np.ndarray:
-            w = np.zeros((n, 4), "<i2")
-            w[:, :3] = np.clip(np.round(v / full * 32768.0), -32768, 32767)
-            w[:, 3] = fourth
-            return w.view(np.uint8).reshape(n, 8)
-
-        types += [ACC, GYRO]
-        payloads += [words(acc, 16.0, 2500), words(gyro, 2000.0)]
-        if eul is not None:
-            types.append(ANGLE)
-            payloads.append(words(eul, 180.0))
-        L = len(types)
-        wire = WitMotionCodec.encode_many(np.tile(np.array(types, np.uint8), n),
-                                          np.stack(payloads, axis=1).reshape(n * L, 8))
-        data = wire.tobytes()
-        step = L * 11
+        data, step = witmotion_wire(dev_ms, acc, gyro, eul)
         garbage = o["garbage"]
         bad = self._nrng.random(n) < garbage if garbage else None
         if o["truth"]:

@@ -20,8 +20,13 @@ from devices.transports.base import Transport, split_url
 
 log = logging.getLogger(__name__)
 
-#: Built-in schemes. Serial (issue 3), HID (issue 4) and network (issue 5) transports join here.
-TRANSPORTS: dict[str, tuple[str, str]] = {}
+#: Built-in schemes. HID (issue 4) and network (issue 5) transports join here.
+TRANSPORTS: dict[str, tuple[str, str]] = {
+    "serial": ("devices.transports.serialport", "SerialTransport"),
+    "rfc2217": ("devices.transports.serialport", "Rfc2217Transport"),
+    "socket": ("devices.transports.serialport", "SocketTransport"),
+    "loop": ("devices.transports.serialport", "LoopTransport"),
+}
 
 _ENTRY_POINT_GROUP = "perfcap.transports"
 

@@ -54,6 +54,18 @@ class Transport(abc.ABC):
     def implied_name(self) -> str | None:
         return None
 
+    def identity_hint(self) -> dict[str, Any]:
+        """What the transport knows of the device's identity without opening it (USB vid, pid,
+        serial number, bus address); keys are ``DeviceIdentity`` fields. Default: nothing."""
+        return {}
+
+    def present(self) -> bool | None:
+        """Whether the device is there to be opened, found cheaply without opening it (a serial
+        port's path exists); ``None`` when the transport cannot tell. While a device is away the
+        reader polls this, so it reconnects as soon as the device returns, not at the next
+        backoff step."""
+        return None
+
     # -- I/O ----------------------------------------------------------------------------------------
     @abc.abstractmethod
     def open(self) -> None:
