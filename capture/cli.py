@@ -375,7 +375,36 @@ def cmd_devices(args: argparse.Namespace) -> int:
     from devices import device_class, known_kinds, known_schemes
     from devices.options import describe
     from devices.transports import transport_class
+    from devices.transports.serialport import list_serial_ports
 
+    ports = list_serial_ports()
+    if args.json:
+        doc = {
+            "serial_ports": [p.as_dict() for p in ports],
+            "kinds": {k: {"description": device_class(k).description,
+                          "options": {n: {"default": o.default, "help": o.help, "form": o.form()}
+                                      for n, o in device_class(k).options.items()}} for k in known_kinds()},
+            "transports": {sch: {"usage": transport_class(sch).usage,
+                                 "options": {n: {"default": o.default, "help": o.help, "form": o.form()}
+                                             for n, o in transport_class(sch).options.items()}}
+                           for sch in known_schemes()},
+        }
+        out(json.dumps(doc, indent=2))
+        return 0
+    out("serial ports:")
+    if not ports:
+        out("  none found (a USB adapter plugged in shows up here; try perfcap sim serial for a simulated one)")
+    for p in ports:
+        what = p.adapter.chip if p.adapter else (p.description if p.description not in ("", "n/a") else
+                                                 "built-in or unidentified UART")
+        kinds = f"; likely {', '.join(p.adapter.kinds)}" if p.adapter and p.adapter.kinds else ""
+        out(f"  {p.device}  [{p.vid_pid or 'no USB id'}] {what}{kinds}")
+        out(f"      open as KIND@{p.url}")
+        if p.latency_timer_ms and p.latency_timer_ms > 2:
+            out(f"      note: FTDI latency timer is {p.latency_timer_ms} ms (readings arrive in bursts);"
+                " low_latency=true (the default) asks for 1 ms")
+        if p.adapter and p.adapter.note:
+            out(f"      note: {p.adapter.note}")
     out("device kinds (KIND@ in a device string):")
     for k in known_kinds():
         c = device_class(k)
@@ -389,6 +418,16 @@ def cmd_devices(args: argparse.Namespace) -> int:
         if t.options:
             out(describe(t.options))
     return 0
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from importlib.metadata import entry_points
+
+    sims = {ep.name: ep for ep in entry_points(group="perfcap.sims")}
+    if args.what not in sims:
+        raise ConfigError(f"no simulator {args.what!r}; known: {', '.join(sorted(sims)) or 'none'}"
+                          " (is perfcap installed with pip install -e .?)")
+    return int(sims[args.what].load()(args.args))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -455,8 +494,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
-    dv = sub.add_parser("devices", help="list device kinds and transports with their options")
+    dv = sub.add_parser("devices", help="list serial ports present, device kinds and transports")
+    dv.add_argument("--json", action="store_true", help="one JSON object")
     dv.set_defaults(func=cmd_devices)
+
+    sm = sub.add_parser("sim", help="serve a simulated device (perfcap sim serial --help)", add_help=False)
+    sm.add_argument("what", metavar="DEVICE", help="serial")
+    sm.add_argument("args", nargs=argparse.REMAINDER)
+    sm.set_defaults(func=cmd_sim)
     return p
 
 
