@@ -401,6 +401,8 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--unplug-every", type=float, default=0.0, help="unplug every this many seconds")
     p.add_argument("--unplug-for", type=float, default=1.0, help="... for this long")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
+    p.add_argument("--sent-log", metavar="FILE.npy", help="at the end, save (reading index, host write time ns)"
+                   " of every reading sent, for latency and loss checks")
     return p.parse_args(list(argv))
 
 
@@ -467,6 +469,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         pass
     finally:
         sim.stop()
+    if args.sent_log:
+        np.save(args.sent_log, np.array(sim.sent, np.int64).reshape(-1, 2))
     s = sim.stats
     print(f"# sent {s.readings_sent} readings ({s.bytes_sent} bytes); {s.lost_unplugged} while unplugged;"
           f" {s.unplugs} unplugs; {s.overrun_bytes} bytes not taken by a reader", file=sys.stderr)
