@@ -58,6 +58,9 @@ class Subscriber:
     accepts: frozenset[type] = SAMPLES
     #: Seconds between ``on_idle`` calls when nothing arrives; ``None`` for never.
     idle_interval_s: float | None = None
+    #: A processor publishes derived items back onto the bus (orientation from IMU samples). On
+    #: close, processors are drained first, so what they publish last still reaches the recorder.
+    publishes: bool = False
 
     def on_item(self, item: Any) -> None:  # pragma: no cover - interface
         raise NotImplementedError
@@ -342,7 +345,8 @@ class SampleBus:
     def close(self, timeout: float | None = None) -> None:
         """Drain and stop every subscriber (each gets everything already published)."""
         self._closed = True
-        for s in self._subs:
+        subs = self._subs
+        for s in [s for s in subs if s.subscriber.publishes] + [s for s in subs if not s.subscriber.publishes]:
             self.unsubscribe(s, wait=True, timeout=timeout)
 
     def _overflowed(self, s: Subscription) -> None:

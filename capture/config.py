@@ -22,6 +22,14 @@ A config file looks like::
     max_s = 5.0
     give_up_after_s = 0        # 0 = keep trying
 
+    [orientation]
+    enabled = false            # orientation fusion on every IMU stream (also: record --orientation)
+    filter = "fusion"          # fusion | madgwick | mahony | ekf
+    auto_bias = true           # learn the gyro bias from stillness
+
+    [calibration]
+    dir = ""                   # default: $XDG_DATA_HOME/perfcap/calibration
+
     [[devices]]
     name = "wrist"
     kind = "witmotion"
@@ -67,10 +75,24 @@ class ReconnectSettings:
 
 
 @dataclass
+class OrientationSettings:
+    enabled: bool = False    # run orientation fusion on every IMU stream while recording or replaying
+    filter: str = "fusion"   # fusion | madgwick | mahony | ekf
+    auto_bias: bool = True   # learn the gyro bias from stillness while running
+
+
+@dataclass
+class CalibrationSettings:
+    dir: str = ""            # where calibrations are kept; "" = $XDG_DATA_HOME/perfcap/calibration
+
+
+@dataclass
 class Settings:
     bus: BusSettings = field(default_factory=BusSettings)
     recorder: RecorderSettings = field(default_factory=RecorderSettings)
     reconnect: ReconnectSettings = field(default_factory=ReconnectSettings)
+    orientation: OrientationSettings = field(default_factory=OrientationSettings)
+    calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     devices: list[Any] = field(default_factory=list)  # DeviceSpec
     sources: list[str] = field(default_factory=list)
 
@@ -80,7 +102,9 @@ class Settings:
         return ReconnectPolicy(r.enabled, r.initial_s, r.max_s, 2.0, r.give_up_after_s or None)
 
 
-_SECTIONS = {"bus": BusSettings, "recorder": RecorderSettings, "reconnect": ReconnectSettings}
+_SECTIONS = {"bus": BusSettings, "recorder": RecorderSettings, "reconnect": ReconnectSettings,
+             "orientation": OrientationSettings, "calibration": CalibrationSettings}
+_CHOICES: dict[str, tuple[str, ...]] = {"orientation.filter": ("fusion", "madgwick", "mahony", "ekf")}
 _LIMITS: dict[str, tuple[float, float]] = {
     "bus.live_queue": (1, 10_000_000), "bus.recorder_max_mb": (1, 1_000_000),
     "recorder.max_loss_s": (0.01, 3600), "reconnect.initial_s": (0.001, 3600), "reconnect.max_s": (0.001, 3600),
@@ -109,6 +133,9 @@ def _coerce(where: str, key: str, value: Any, typ: type, from_text: bool) -> Any
         raise ConfigError(f"{where}: {key} = {value!r} must be {_TYPE_NAMES[typ]}", source=where)
     if typ is float:
         value = float(value)
+    choices = _CHOICES.get(key)
+    if choices and value not in choices:
+        raise ConfigError(f"{where}: {key} = {value!r} must be one of {', '.join(choices)}", source=where)
     lim = _LIMITS.get(key)
     if lim and not (lim[0] <= value <= lim[1]):
         raise ConfigError(f"{where}: {key} = {value!r} must be within [{lim[0]}, {lim[1]}]", source=where)

@@ -152,12 +152,34 @@ class Capture:
                 writer.close()
             raise
         self.readers = [DeviceReader(d, self.bus, reconnect) for d in self.devices]
+        self.processors: list[Any] = []
         self._t_start = 0
         self._stopped = False
         self._report: CaptureReport | None = None
 
     def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST, name: str | None = None) -> Any:
         return self.bus.subscribe(sub, policy=policy, name=name)
+
+    def add_processor(self, proc: Any, name: str | None = None) -> Any:
+        """Attach a processor: a subscriber that publishes derived streams (``output_streams()``,
+        declared to the recorder now) back onto the bus through ``bind(publish)``. It never drops
+        input, and it is drained before the recorder when the capture stops.
+
+        Raises:
+            ConfigError: the capture has already started, or an output stream name is taken.
+        """
+        if self._t_start:
+            raise ConfigError("processors must be added before the capture starts")
+        taken = {s.name for d in self.devices for s in d.streams}
+        for info in proc.output_streams():
+            if info.name in taken:
+                raise ConfigError(f"processor {name or type(proc).__name__}: stream {info.name} already exists")
+            taken.add(info.name)
+            if self.recorder is not None:
+                self.recorder.add_stream(info)
+        proc.bind(self.bus.publish)
+        self.processors.append(proc)
+        return self.bus.subscribe(proc, policy=Overflow.NEVER_DROP, name=name or type(proc).__name__)
 
     def start(self) -> Capture:
         self._t_start = self.clock.now_ns()

@@ -94,18 +94,42 @@ class WavingSource(FrameSource):
         device_clock: include the device's own time stamps where the protocol has them.
         start_ms: device clock at the start (ms of day for WitMotion).
         block_s: readings generated per block, in seconds.
+        amplitude_deg: size of the waving (0: the device lies still, tilted a little).
+        gyro_bias_dps: a constant gyro offset the sensor adds (x, y, z), as real MEMS gyros do.
+        gyro_noise_dps: white noise on each gyro axis (standard deviation).
     """
 
     def __init__(self, kind: str = "witmotion", rate: float = 200.0, seed: int = 1, device_clock: bool = True,
-                 start_ms: int = 12 * 3_600_000, block_s: float = 0.1) -> None:
+                 start_ms: int = 12 * 3_600_000, block_s: float = 0.1, amplitude_deg: float = 40.0,
+                 gyro_bias_dps: tuple[float, float, float] = (0.0, 0.0, 0.0), gyro_noise_dps: float = 0.0) -> None:
         if kind not in ENCODERS:
             raise ConfigError(f"no simulated serial device of kind {kind!r}; known: {', '.join(sorted(ENCODERS))}")
         self.kind = kind
         self.rate = rate
         self.device_clock = device_clock
         self.start_ms = start_ms
-        self.motion = WavingMotion(seed)
+        self.motion = WavingMotion(seed, amplitude_deg=amplitude_deg)
+        self.still = amplitude_deg == 0
+        self.bias = np.asarray(gyro_bias_dps, np.float64)
+        self.noise = gyro_noise_dps
+        self.rng = np.random.default_rng(seed + 1000)
         self.block = max(1, int(round(rate * block_s)))
+
+    def sense(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the sensor measures at times ``t``: specific force (g), angular rate (deg/s, with the
+        bias and noise), roll/pitch/yaw (deg); a still device rests tilted by 10 and -5 degrees."""
+        if self.still:
+            n = t.size
+            roll, pitch = np.radians(10.0), np.radians(-5.0)
+            acc = np.tile([-np.sin(pitch), np.cos(pitch) * np.sin(roll), np.cos(pitch) * np.cos(roll)], (n, 1))
+            gyro = np.zeros((n, 3))
+            eul = np.tile([10.0, -5.0, 0.0], (n, 1))
+        else:
+            acc, gyro, eul = self.motion.at_many(t)
+        gyro = gyro + self.bias
+        if self.noise:
+            gyro = gyro + self.rng.normal(0.0, self.noise, gyro.shape)
+        return acc, gyro, eul
 
     def device_options(self) -> dict[str, Any]:
         return ENCODERS[self.kind].device_options(self)
@@ -132,7 +156,7 @@ class _WitMotionEncoder(_Encoder):
         return {"rate": src.rate, "device_clock": src.device_clock}
 
     def encode(self, src: WavingSource, i0: int, t: np.ndarray) -> list[bytes]:
-        acc, gyro, eul = src.motion.at_many(t)
+        acc, gyro, eul = src.sense(t)
         dev_ms = (src.start_ms + np.floor(t * 1000.0)) if src.device_clock else None
         data, step = witmotion_wire(dev_ms, acc, gyro, eul)
         return [data[k * step:(k + 1) * step] for k in range(t.size)]

@@ -391,6 +391,9 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--rate", type=float, default=200.0, help="readings per second (default 200)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--no-device-clock", action="store_true", help="do not send device time stamps")
+    p.add_argument("--still", action="store_true", help="the device lies still (for perfcap calibrate)")
+    p.add_argument("--gyro-bias", default="0,0,0", metavar="X,Y,Z", help="gyro offset the sensor adds, deg/s")
+    p.add_argument("--gyro-noise", type=float, default=0.0, metavar="DPS", help="gyro white noise, deg/s")
     p.add_argument("--session", help="play a recorded session's raw bytes instead of synthetic motion")
     p.add_argument("--device", help="which device of --session")
     p.add_argument("--loop", action="store_true", help="loop --session")
@@ -422,7 +425,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             if args.rate <= 0 or args.rate > 5000:
                 raise ConfigError("--rate must be within (0, 5000]")
-            src = WavingSource(args.kind, args.rate, args.seed, device_clock=not args.no_device_clock)
+            try:
+                bias = tuple(float(x) for x in args.gyro_bias.split(","))
+            except ValueError:
+                bias = ()
+            if len(bias) != 3:
+                raise ConfigError(f"--gyro-bias {args.gyro_bias!r}: expected X,Y,Z in deg/s")
+            src = WavingSource(args.kind, args.rate, args.seed, device_clock=not args.no_device_clock,
+                               amplitude_deg=0.0 if args.still else 40.0, gyro_bias_dps=bias,  # type: ignore[arg-type]
+                               gyro_noise_dps=args.gyro_noise)
         sim = PtySerialDevice(src, args.link, burst_ms=args.burst_ms, burst_bytes=args.burst_bytes,
                               garbage=args.garbage, unplug_every=args.unplug_every, unplug_for=args.unplug_for,
                               seed=args.seed)
