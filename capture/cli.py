@@ -308,6 +308,51 @@ DEMO_DEVICES = [
 ]
 
 
+DEMO_UNPLUG_AT, DEMO_UNPLUG_FOR = 3.0, 0.5
+
+
+def _start_serial_sim(duration: float) -> tuple[Any, str] | None:
+    """``perfcap sim serial`` in a child process (as a real device is outside perfcap); (process, port
+    path), or None where ptys do not exist (Windows) or it fails to start (said, not hidden)."""
+    import subprocess
+
+    if os.name != "posix":
+        out("  (no simulated serial port on this OS: ptys are POSIX only)")
+        return None
+    link = os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-port-"), "ttyWT901")
+    cmd = [sys.executable, "-m", "capture.cli", "sim", "serial", "--kind", "witmotion", "--rate", "200",
+           "--seed", "4", "--link", link, "--unplug-every", str(DEMO_UNPLUG_AT), "--unplug-for", str(DEMO_UNPLUG_FOR),
+           "--duration", str(duration + 30)]
+    try:
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                text=True)
+    except OSError as exc:
+        out(f"  (the simulated serial port could not start: {exc}; continuing without it)")
+        return None
+    line = proc.stdout.readline().strip() if proc.stdout else ""
+    if line != link:
+        _stop_serial_sim(proc)
+        out("  (the simulated serial port did not start; continuing without it)")
+        return None
+    return proc, link
+
+
+def _stop_serial_sim(proc: Any) -> None:
+    import subprocess
+
+    try:
+        if proc.stdin:
+            proc.stdin.write("quit\n")
+            proc.stdin.close()
+        proc.wait(5)
+    except (OSError, ValueError, subprocess.TimeoutExpired):
+        proc.kill()
+        proc.wait()
+    finally:
+        if proc.stdout:
+            proc.stdout.close()
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from capture.pipeline import Capture
     from capture.player import replay_session
@@ -316,13 +361,25 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     _check_duration(args.duration)
     path = args.output or os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-"), "demo.mcap")
-    out(f"perfcap {__version__} demo: three simulated IMUs through the real codec, clock sync, bus and recorder")
-    for name, url in DEMO_DEVICES:
+    devices = list(DEMO_DEVICES)
+    sim = _start_serial_sim(args.duration)
+    if sim is not None:
+        devices.append(("hand", f"witmotion@serial://{sim[1]}?rate=200&device_clock=true"))
+    out(f"perfcap {__version__} demo: {len(devices)} simulated IMUs through the real codec, clock sync, bus and"
+        " recorder")
+    for name, url in devices:
         out(f"  {name:6s} {url}")
+    if sim is not None:
+        out(f"  (hand is a WT901 served on a pty by 'perfcap sim serial' in another process, read through pyserial;"
+            f" it is unplugged {DEMO_UNPLUG_AT:g} s in for {DEMO_UNPLUG_FOR:g} s)")
     stop = _stop_on_signals()
-    cap = Capture([f"{n}={u}" for n, u in DEMO_DEVICES], output=path, overwrite=args.overwrite,
-                  meta={"command": "perfcap demo"})
-    report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else _live_line)
+    try:
+        cap = Capture([f"{n}={u}" for n, u in devices], output=path, overwrite=args.overwrite,
+                      meta={"command": "perfcap demo"})
+        report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else _live_line)
+    finally:
+        if sim is not None:
+            _stop_serial_sim(sim[0])
     code = _print_capture(report, False)
     if code:
         return code
