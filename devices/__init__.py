@@ -28,6 +28,8 @@ from devices.transports import open_transport, split_url, transport_class, known
 #: kind -> (module, class). Out-of-tree kinds use the ``perfcap.devices`` entry-point group.
 DEVICE_TYPES: dict[str, tuple[str, str]] = {
     "witmotion": ("devices.witmotion", "WitMotionImu"),
+    "bno08x_rvc": ("devices.bno08x", "Bno08xRvcImu"),
+    "textline": ("devices.textline", "TextLineImu"),
 }
 
 SPEC_FORM = "[NAME=][KIND@]SCHEME://ADDRESS[?key=value&...]"
