@@ -162,8 +162,48 @@ class _WitMotionEncoder(_Encoder):
         return [data[k * step:(k + 1) * step] for k in range(t.size)]
 
 
+class _Bno08xRvcEncoder(_Encoder):
+    """BNO08x UART-RVC at its fixed 100 Hz: roll/pitch/yaw and acceleration; the frame counter is the
+    device clock."""
+
+    def device_options(self, src: WavingSource) -> dict[str, Any]:
+        return {"device_clock": src.device_clock}
+
+    def encode(self, src: WavingSource, i0: int, t: np.ndarray) -> list[bytes]:
+        from devices.bno08x import encode_rvc_many
+
+        acc, _, eul = src.sense(t)
+        eul = (eul + 180.0) % 360.0 - 180.0
+        wire = encode_rvc_many(np.arange(i0, i0 + t.size) % 256, eul, acc * 9.80665)
+        return [row.tobytes() for row in wire]
+
+
+TEXTLINE_OPTIONS = {"format": "csv", "columns": "t,ax,ay,az,gx,gy,gz", "units": "ms,g,g,g,dps,dps,dps",
+                    "time": "t", "time_wrap": "u32"}
+
+
+class _TextLineEncoder(_Encoder):
+    """An Arduino sketch printing ``millis(),ax,ay,az,gx,gy,gz`` (g and deg/s, 4 decimals)."""
+
+    def device_options(self, src: WavingSource) -> dict[str, Any]:
+        return {**TEXTLINE_OPTIONS, "rate": src.rate}
+
+    def encode(self, src: WavingSource, i0: int, t: np.ndarray) -> list[bytes]:
+        from devices.textline import TextLineLayout
+
+        layout = getattr(src, "_textline_layout", None)
+        if layout is None:
+            layout = src._textline_layout = TextLineLayout(self.device_options(src))  # type: ignore[attr-defined]
+        acc, gyro, _ = src.sense(t)
+        acc = acc * 9.80665
+        gyro = np.radians(gyro)
+        ch = {"ax": acc[:, 0], "ay": acc[:, 1], "az": acc[:, 2], "gx": gyro[:, 0], "gy": gyro[:, 1], "gz": gyro[:, 2]}
+        return layout.encode_lines(ch, np.floor(t * 1000.0) / 1000.0, decimals=4)
+
+
 #: device kind -> how to encode synthetic motion for it. Other serial kinds add themselves here.
-ENCODERS: dict[str, _Encoder] = {"witmotion": _WitMotionEncoder()}
+ENCODERS: dict[str, _Encoder] = {"witmotion": _WitMotionEncoder(), "bno08x_rvc": _Bno08xRvcEncoder(),
+                                 "textline": _TextLineEncoder()}
 
 
 class SessionSource(FrameSource):
