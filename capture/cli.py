@@ -87,6 +87,10 @@ def _settings(args: argparse.Namespace) -> Any:
         overrides["recorder"]["max_loss_s"] = args.max_loss
     if getattr(args, "overwrite", False):
         overrides["recorder"]["overwrite"] = True
+    if getattr(args, "orientation", None) is not None or getattr(args, "filter", None):
+        overrides["orientation"] = {"enabled": getattr(args, "orientation", None), "filter": getattr(args, "filter", None)}
+    if getattr(args, "calibration_dir", None):
+        overrides["calibration"] = {"dir": args.calibration_dir}
     return load_config(getattr(args, "config", None), getattr(args, "profile", None), overrides)
 
 
@@ -110,6 +114,17 @@ def cmd_record(args: argparse.Namespace) -> int:
                   fsync=s.recorder.fsync, recorder_max_bytes=s.bus.recorder_max_mb << 20,
                   live_queue=s.bus.live_queue, reconnect=s.reconnect_policy(),
                   meta={"command": " ".join(sys.argv), "config": ",".join(s.sources)})
+    if s.orientation.enabled:
+        from capture.calibration_store import CalibrationStore
+
+        try:
+            proc = cap.enable_orientation(s.orientation.filter, s.orientation.auto_bias,
+                                          store=CalibrationStore(s.calibration.dir or None))
+        except BaseException:
+            cap.stop()
+            raise
+        if proc is None:
+            print("perfcap: note: --orientation: no IMU stream among the devices", file=sys.stderr)
     names = ", ".join(f"{d.name} ({d.kind} @ {d.transport.url})" for d in cap.devices)
     print(f"recording {names} to {args.output}" + (f" for {args.duration:g} s" if args.duration else
                                                    " until Ctrl-C"), file=sys.stderr)
@@ -166,7 +181,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     rep = replay_session(args.session, speed=speed, loop=args.loop, verify=not args.no_verify, output=args.output,
                          overwrite=args.overwrite, stop=stop, duration_s=args.duration,
-                         on_tick=None if args.quiet else _live_line)
+                         on_tick=None if args.quiet else _live_line, orientation=args.orientation,
+                         orientation_filter=args.filter)
     wall = time.monotonic() - t0
     ver = rep.verification
     if args.json:
@@ -477,6 +493,148 @@ def cmd_devices(args: argparse.Namespace) -> int:
     return 0
 
 
+def _collect_imu(spec: Any, seconds: float, s: Any, what: str) -> tuple[Any, dict[str, Any]]:
+    """Read one device for ``seconds``: (the device, arrays t_s, acc m/s^2, gyro rad/s, mag or None)."""
+    import numpy as np
+
+    from capture.bus import Overflow, Subscriber
+    from capture.orientation import check_imu_stream
+    from capture.pipeline import Capture
+    from capture.sample import Sample, SampleBatch
+
+    cap = Capture([spec], reconnect=s.reconnect_policy())
+    dev = cap.devices[0]
+    imus = [x for x in dev.streams if x.kind == "imu"]
+    if not imus:
+        cap.stop()
+        raise ConfigError(f"device {dev.name} ({dev.kind}) has no IMU stream (accelerometer and gyro) to calibrate")
+    try:
+        ch = check_imu_stream(imus[0])
+    except ConfigError:
+        cap.stop()
+        raise
+    mag_name = next((x.name for x in dev.streams if x.kind == "mag"), None)
+    got: dict[str, list[Any]] = {imus[0].name: [], mag_name or "": []}
+
+    class Keep(Subscriber):
+        accepts = frozenset({Sample, SampleBatch})
+
+        def on_item(self, item: Any) -> None:
+            if item.stream in got:
+                if type(item) is Sample:
+                    got[item.stream].append((np.array([item.t_bus_ns]), np.array([item.values], float)))
+                else:
+                    got[item.stream].append((item.t_bus_ns, item.values))
+
+    cap.subscribe(Keep(), Overflow.NEVER_DROP, "calibrate")
+    print(f"perfcap calibrate: {what}; reading {dev.name} for {seconds:g} s ...", file=sys.stderr, flush=True)
+    rep = cap.run(seconds, stop=_stop_on_signals())
+    if rep.devices[dev.name]["state"] == "failed":
+        raise ConfigError(f"device {dev.name} failed while calibrating (see the messages above)")
+    rows = got[imus[0].name]
+    if not rows:
+        raise ConfigError(f"no readings from {dev.name} in {seconds:g} s: is it streaming?")
+    t = np.concatenate([r[0] for r in rows]) / 1e9
+    v = np.concatenate([r[1] for r in rows])
+    data = {"t": t, "acc": v[:, list(ch.acc_idx)] * ch.acc_scale, "gyro": v[:, list(ch.gyro_idx)] * ch.gyro_scale,
+            "mag": None}
+    mrows = got.get(mag_name or "", [])
+    if mag_name and mrows:
+        data["mag"] = np.concatenate([r[1] for r in mrows])[:, :3]
+    return dev, data
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from capture.calibration import (ImuCalibration, fit_accelerometer, fit_magnetometer, mounting_from_gravity,
+                                     still_bias, still_poses)
+    from capture.calibration_store import CalibrationStore
+    from devices import open_device, parse_device_spec
+
+    s = _settings(args)
+    store = CalibrationStore(s.calibration.dir or None)
+    if args.list:
+        entries = store.entries()
+        if args.json:
+            out(json.dumps([{"file": str(p), "document": d, "error": e} for p, d, e in entries], default=str))
+            return 0
+        out(f"calibrations in {store.dir}:" + ("" if entries else " none"))
+        for p, d, e in entries:
+            out(f"  {p.name}: " + (f"DAMAGED: {e}" if e else f"{d['identity']['kind']} {d['identity']['name']}"
+                                   f" ({d.get('note') or 'no note'})"))
+        return 0
+    if not args.device:
+        raise ConfigError("give the device to calibrate with -d DEVICE (or --list)")
+    spec = parse_device_spec(args.device)
+    probe = open_device(spec)  # identity only: not opened
+    ident = probe.identity
+    current = store.load(ident) or ImuCalibration(device=ident.name)
+    if args.show or args.clear:
+        if args.clear:
+            gone = store.remove(ident)
+            out(f"{'removed' if gone else 'no calibration at'} {store.path_for(ident)}")
+            return 0
+        out(json.dumps({"file": str(store.path_for(ident)), "calibration": json.loads(current.to_json())}, indent=2))
+        return 0
+    steps = [x for x in ("gyro", "accel", "mag", "mounting") if getattr(args, x)]
+    if not steps:
+        raise ConfigError("say what to calibrate: --gyro (hold still), --accel (still poses), --mag (rotate in all"
+                          " directions), --mounting (reference pose); or --show, --clear, --list")
+    _check_duration(args.seconds)
+    report: dict[str, Any] = {}
+    cal = current
+    if args.gyro:
+        dev, d = _collect_imu(spec, args.seconds, s, "gyro bias: keep the sensor still")
+        sb = still_bias(d["gyro"], d["acc"], d["t"], source=dev.name)
+        cal = cal.with_gyro_bias(sb.bias)
+        report["gyro_bias_dps"] = np.degrees(sb.bias).round(4).tolist()
+        report["gyro_bias_stderr_dps"] = np.degrees(sb.stderr).round(5).tolist()
+        out(f"gyro bias {np.degrees(sb.bias).round(4).tolist()} deg/s (+- {np.degrees(sb.stderr).max():.4f}) from"
+            f" {sb.n} still samples over {sb.duration_s:.1f} s")
+    if args.accel:
+        dev, d = _collect_imu(spec, args.seconds, s, f"accelerometer: rest the sensor in {args.poses} different"
+                              " orientations (faces up and down), a few seconds each, turning between them")
+        poses = still_poses(d["t"], d["acc"], d["gyro"])
+        fit = fit_accelerometer(poses, source=dev.name)
+        from dataclasses import replace
+        cal = replace(cal, acc_offset=tuple(fit.offset), acc_matrix=tuple(map(tuple, fit.matrix)))
+        report["accel"] = {"poses": fit.poses, "distinct": fit.distinct, "model": fit.model,
+                           "residual_rms": fit.residual_rms, "raw_rms": fit.raw_rms}
+        out(f"accelerometer ({fit.model}, {fit.distinct} orientations): |g| error rms {fit.raw_rms:.4f} ->"
+            f" {fit.residual_rms:.4f} m/s^2")
+    if args.mag:
+        dev, d = _collect_imu(spec, args.seconds, s, "magnetometer: turn the sensor slowly through every direction")
+        if d["mag"] is None:
+            raise ConfigError(f"device {dev.name} has no magnetometer stream")
+        mf = fit_magnetometer(d["mag"], source=dev.name)
+        from dataclasses import replace
+        cal = replace(cal, mag_hard_iron=tuple(mf.hard_iron), mag_soft_iron=tuple(map(tuple, mf.soft_iron)))
+        report["mag"] = {"model": mf.model, "coverage": mf.coverage, "spread_before": mf.spread_before,
+                         "spread_after": mf.spread_after}
+        out(f"magnetometer ({mf.model}, coverage {mf.coverage:.0%}): field magnitude spread {mf.spread_before:.1%}"
+            f" -> {mf.spread_after:.1%}")
+    if args.mounting:
+        dev, d = _collect_imu(spec, args.seconds, s, "mounting: stand in the reference pose and keep still")
+        sb = still_bias(d["gyro"], d["acc"], d["t"], source=dev.name)  # also checks it was still
+        del sb
+        from dataclasses import replace
+        cal = replace(cal, mounting=mounting_from_gravity(d["acc"].mean(axis=0)))
+        report["mounting"] = list(cal.mounting)
+        out(f"mounting (sensor -> segment) {np.round(cal.mounting, 4).tolist()}")
+    from dataclasses import replace
+    cal = replace(cal, device=ident.name, note=f"perfcap calibrate --{' --'.join(steps)}")
+    if args.dry_run:
+        out("dry run: not stored")
+    else:
+        path = store.save(ident, cal, note=cal.note)
+        out(f"stored in {path}; perfcap record --orientation applies it to {ident.name} (and replays keep it)")
+        report["file"] = str(path)
+    if args.json:
+        out(json.dumps(report, default=float))
+    return 0
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from importlib.metadata import entry_points
 
@@ -493,6 +651,14 @@ class _Parser(argparse.ArgumentParser):
         self.print_usage(sys.stderr)
         print(f"perfcap: error: {message}", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
+
+
+def _orientation_args(p: argparse.ArgumentParser, help_on: str) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--orientation", action="store_true", default=None, help=help_on)
+    g.add_argument("--no-orientation", dest="orientation", action="store_false", help="no orientation fusion")
+    p.add_argument("--filter", choices=["fusion", "madgwick", "mahony", "ekf"],
+                   help="orientation filter (default fusion: x-io's Fusion, chosen by measurement)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -515,6 +681,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-loss", type=float, metavar="SECONDS", help="most data a crash may lose (default 1 s)")
     r.add_argument("--json", action="store_true", help="print the report as JSON")
     r.add_argument("-q", "--quiet", action="store_true", help="no live status lines")
+    _orientation_args(r, "record orientation, gravity and linear acceleration of every IMU (with its stored"
+                         " calibration)")
+    r.add_argument("--calibration-dir", metavar="DIR", help="where calibrations are stored (perfcap calibrate)")
     r.set_defaults(func=cmd_record)
 
     rp = sub.add_parser("replay", help="replay a session through the same codecs and check it")
@@ -529,6 +698,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--no-verify", action="store_true", help="skip comparing with the recorded samples")
     rp.add_argument("--json", action="store_true")
     rp.add_argument("-q", "--quiet", action="store_true")
+    _orientation_args(rp, "compute orientation even if the session has none (default: rebuild and verify the"
+                          " recorded orientation streams with the recorded filter and calibration)")
     rp.set_defaults(func=cmd_replay)
 
     i = sub.add_parser("info", help="summarise a session")
@@ -554,6 +725,24 @@ def build_parser() -> argparse.ArgumentParser:
     dv = sub.add_parser("devices", help="list serial ports present, device kinds and transports")
     dv.add_argument("--json", action="store_true", help="one JSON object")
     dv.set_defaults(func=cmd_devices)
+
+    c = sub.add_parser("calibrate", help="calibrate an IMU (gyro bias, accelerometer, magnetometer, mounting)")
+    c.add_argument("-d", "--device", metavar="DEVICE", help=f"the device, as for record ({SPEC_FORM})")
+    c.add_argument("--gyro", action="store_true", help="gyro bias from an explicit still period")
+    c.add_argument("--accel", action="store_true", help="accelerometer offset and scale from still poses")
+    c.add_argument("--poses", type=int, default=6, help="orientations asked for by --accel (default 6)")
+    c.add_argument("--mag", action="store_true", help="magnetometer hard and soft iron from a rotation dance")
+    c.add_argument("--mounting", action="store_true", help="mounting rotation from a still reference pose")
+    c.add_argument("--seconds", type=float, default=5.0, help="how long to read for each step (default 5)")
+    c.add_argument("--show", action="store_true", help="print the stored calibration")
+    c.add_argument("--clear", action="store_true", help="remove the stored calibration")
+    c.add_argument("--list", action="store_true", help="list stored calibrations")
+    c.add_argument("--dry-run", action="store_true", help="measure and print, do not store")
+    c.add_argument("--calibration-dir", metavar="DIR", help="where calibrations are stored")
+    c.add_argument("--config", metavar="FILE")
+    c.add_argument("--profile", metavar="NAME")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=cmd_calibrate)
 
     sm = sub.add_parser("sim", help="serve a simulated device (perfcap sim serial --help)", add_help=False)
     sm.add_argument("what", metavar="DEVICE", help="serial")

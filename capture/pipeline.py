@@ -4,11 +4,12 @@ together. ``perfcap record``, ``perfcap demo`` and ``perfcap replay`` are thin l
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 from dataclasses import dataclass, field
 from typing import Any
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 from capture.bus import Overflow, SampleBus, Subscriber
 from capture.clock import MONOTONIC, Clock
@@ -91,6 +92,37 @@ class CaptureReport:
     events: list[dict[str, Any]] = field(default_factory=list)
 
 
+CALIBRATION_KEY = "calibration.json"
+
+
+def build_orientation(devices: Sequence[Device], filter: str, auto_bias: bool,
+                      calibrations: Mapping[str, Any]) -> Any:
+    """An ``OrientationProcessor`` over every IMU stream of ``devices`` (with each device's
+    magnetometer where its units allow), or None when no device has an IMU stream."""
+    from capture.orientation import OrientationProcessor, check_mag_stream
+
+    inputs = []
+    for d in devices:
+        imus = [s for s in d.streams if s.kind == "imu"]
+        if not imus:
+            continue
+        inputs += imus
+        for s in d.streams:
+            if s.kind == "mag":
+                try:
+                    check_mag_stream(s, imus[0])
+                except ConfigError as exc:
+                    log.info("%s is not used for orientation: %s", s.name, exc)
+                    continue
+                inputs.append(s)
+    if not inputs:
+        return None
+    proc = OrientationProcessor(inputs, filter, calibrations, auto_bias=auto_bias)
+    for o in proc.output_streams():
+        o.extra["auto_bias"] = auto_bias  # so a replay rebuilds the same processor
+    return proc
+
+
 class Capture:
     """Devices on one bus, optionally recorded.
 
@@ -153,6 +185,7 @@ class Capture:
             raise
         self.readers = [DeviceReader(d, self.bus, reconnect) for d in self.devices]
         self.processors: list[Any] = []
+        self.orientation: Any = None
         self._t_start = 0
         self._stopped = False
         self._report: CaptureReport | None = None
@@ -180,6 +213,37 @@ class Capture:
         proc.bind(self.bus.publish)
         self.processors.append(proc)
         return self.bus.subscribe(proc, policy=Overflow.NEVER_DROP, name=name or type(proc).__name__)
+
+    def enable_orientation(self, filter: str = "fusion", auto_bias: bool = True,
+                           calibrations: Mapping[str, Any] | None = None, store: Any = None) -> Any:
+        """Orientation fusion on every IMU stream (see ``capture.orientation``), with each device's
+        calibration: from ``calibrations`` (by device name), else from ``store`` (a
+        ``CalibrationStore``, by device identity). The calibration used is recorded with the device,
+        so a replay re-applies exactly it. Returns the processor, or None if no stream is an IMU.
+
+        Raises:
+            ConfigError: a stored calibration is damaged, or a stream fails the unit/frame check.
+        """
+        from capture.calibration_store import calibration_document
+
+        cals: dict[str, Any] = dict(calibrations or {})
+        for d in self.devices:
+            if d.name not in cals and store is not None and any(s.kind == "imu" for s in d.streams):
+                cal = store.load(d.identity)
+                if cal is not None:
+                    log.info("device %s: calibration from %s", d.name, store.path_for(d.identity))
+                    cals[d.name] = cal
+        proc = build_orientation(self.devices, filter, auto_bias, cals)
+        if proc is None:
+            return None
+        if self.recorder is not None:
+            for d in self.devices:
+                if d.name in cals:
+                    doc = calibration_document(d.identity, cals[d.name], None, "in use for this take")
+                    self.recorder.writer.add_descriptor(d.name, CALIBRATION_KEY, json.dumps(doc).encode())
+        self.add_processor(proc, name="orientation")
+        self.orientation = proc
+        return proc
 
     def start(self) -> Capture:
         self._t_start = self.clock.now_ns()

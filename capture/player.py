@@ -111,7 +111,8 @@ def session_span(reader: SessionReader) -> tuple[int, int]:
 def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify: bool = True,
                    output: str | None = None, overwrite: bool = False, stop: threading.Event | None = None,
                    on_tick: Callable[[Capture, float], None] | None = None, duration_s: float | None = None,
-                   clock: Clock = MONOTONIC, subscribers: list[tuple[Subscriber, Overflow]] | None = None) -> ReplayReport:
+                   clock: Clock = MONOTONIC, subscribers: list[tuple[Subscriber, Overflow]] | None = None,
+                   orientation: bool | None = None, orientation_filter: str | None = None) -> ReplayReport:
     """Replay every device of a session.
 
     Args:
@@ -120,6 +121,10 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
         loop: start over at the end (runs until ``stop`` or ``duration_s``).
         verify: compare replayed samples with the recorded ones.
         output: record the replay to a new session.
+        orientation: run orientation fusion. None (default): when the session holds orientation
+            streams, rebuild them with the recorded filter and calibration, and verify them too.
+            True: also for a session recorded without it (new streams, not verified). False: never.
+        orientation_filter: filter for new orientation streams (default: the recorded one, else fusion).
 
     Raises:
         SessionError: unreadable session, or nothing to replay.
@@ -135,6 +140,27 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
             for name in reader.devices]
     cap = Capture(urls, output=output, overwrite=overwrite, clock=clock,
                   meta={"replay_of": path, "speed": repr(speed)})
+    recorded_orient = {n: i for n, i in reader.streams.items() if i.kind == "orientation"}
+    new_streams: set[str] = set()
+    if orientation or (orientation is None and recorded_orient):
+        from capture.calibration_store import parse_calibration_document
+        from capture.errors import ConfigError
+        from capture.pipeline import CALIBRATION_KEY
+
+        first = next(iter(recorded_orient.values()), None)
+        flt = orientation_filter or (first.extra.get("filter") if first and first.extra else None) or "fusion"
+        auto = bool(first.extra.get("auto_bias", False)) if first and first.extra else True
+        cals = {}
+        for name, rec in reader.devices.items():
+            blob = rec.descriptors.get(CALIBRATION_KEY)
+            if blob is not None:
+                try:
+                    cals[name] = parse_calibration_document(blob, f"{path}: {name}/{CALIBRATION_KEY}")[1]
+                except ConfigError as exc:
+                    log.error("%s (replaying without that calibration)", exc)
+        proc = cap.enable_orientation(flt, auto, calibrations=cals)
+        if proc is not None:
+            new_streams = {o.name for o in proc.output_streams()} - set(reader.streams)
     verifier = None
     if verify:
         verifier = ReplayVerifier(reader.all_samples())
@@ -162,6 +188,8 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
             dev = s.split("/")[0]
             if f"block of /samples/{s}" in bad or f"block of /raw/{dev}" in bad:
                 v["unverifiable"] = True
+        for name in new_streams:  # computed now, never recorded: nothing to compare with
+            result["unexpected"].pop(name, None)
         result["equal"] = all(v.get("unverifiable") or (v["mismatches"] == 0 and v["missing"] == 0)
                               for v in result["streams"].values()) and not result["unexpected"]
     firsts = [c.first_bus_ns for c in cap.stats.streams.values() if c.first_bus_ns is not None]

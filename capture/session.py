@@ -297,6 +297,10 @@ class SessionWriter:
         for s in streams:
             self.add_stream(s)
 
+    def add_descriptor(self, device: str, key: str, blob: bytes) -> None:
+        """Attach one more descriptor to a declared device (e.g. the calibration in use)."""
+        self._w.add_attachment(0, 0, f"{device}/{key}", "application/octet-stream", blob)
+
     def add_stream(self, info: StreamInfo) -> None:
         self._quantum[info.name] = info.quantum
         self._channel(f"/samples/{info.name}", SAMPLES_ENCODING, self._smp_schema, {"stream_info": info.to_json()})
