@@ -211,6 +211,7 @@ class Capture:
             if self.recorder is not None:
                 self.recorder.add_stream(info)
         proc.bind(self.bus.publish)
+        proc.publishes = True  # drained before the recorder on close (see Subscriber.publishes)
         self.processors.append(proc)
         return self.bus.subscribe(proc, policy=Overflow.NEVER_DROP, name=name or type(proc).__name__)
 
