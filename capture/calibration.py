@@ -54,7 +54,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -121,11 +121,6 @@ def quat_heading(q: ArrayLike) -> np.ndarray | float:
 def quat_yaw(angle_rad: float) -> np.ndarray:
     """Rotation by ``angle_rad`` about world z, as a quaternion."""
     return np.array([math.cos(angle_rad / 2), 0.0, 0.0, math.sin(angle_rad / 2)])
-
-
-def quat_normalize(q: ArrayLike) -> np.ndarray:
-    q = np.asarray(q, np.float64)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -282,6 +277,17 @@ class ImuCalibration:
             m = _mat_apply(c["ms"], np.asarray(mag, np.float64) - c["mh"])
         return a, g, m
 
+    def apply_one(self, acc: tuple[float, float, float], gyro: tuple[float, float, float]
+                  ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """:meth:`apply` for one sample as plain floats (the same arithmetic, the same results)."""
+        b = self.gyro_bias
+        o = self.acc_offset
+        m = self.acc_matrix
+        x, y, z = acc[0] - o[0], acc[1] - o[1], acc[2] - o[2]
+        a = (m[0][0] * x + m[0][1] * y + m[0][2] * z, m[1][0] * x + m[1][1] * y + m[1][2] * z,
+             m[2][0] * x + m[2][1] * y + m[2][2] * z)
+        return a, (gyro[0] - b[0], gyro[1] - b[1], gyro[2] - b[2])
+
     def apply_mag(self, mag: ArrayLike) -> np.ndarray:
         """Hard- and soft-iron corrected magnetometer readings, (3,) or (n, 3)."""
         c = self._arrays()
@@ -343,7 +349,7 @@ class ImuCalibration:
         """The calibration as a JSON object with ``format`` and ``version`` fields."""
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
-    _KEYS = {"gyro_bias_rad_s": "gyro_bias", "acc_offset_m_s2": "acc_offset", "acc_matrix": "acc_matrix",
+    _KEYS: ClassVar[dict[str, str]] = {"gyro_bias_rad_s": "gyro_bias", "acc_offset_m_s2": "acc_offset", "acc_matrix": "acc_matrix",
              "mag_hard_iron": "mag_hard_iron", "mag_soft_iron": "mag_soft_iron", "mounting_wxyz": "mounting",
              "yaw_offset_rad": "yaw_offset_rad", "device": "device", "note": "note"}
 
@@ -485,7 +491,7 @@ def still_mask(acc: ArrayLike, gyro: ArrayLike, rate_hz: float, *, window_s: flo
         raise ValueError("rate_hz must be positive")
     if a.shape[0] == 0:
         return np.zeros(0, bool)
-    win = max(2, int(round(window_s * rate_hz)))
+    win = max(2, round(window_s * rate_hz))
     am, asd = _moving(a, win)
     gm, gsd = _moving(w_, win)
     return ((asd.max(axis=1) <= acc_std_max) & (gsd.max(axis=1) <= gyro_std_max)

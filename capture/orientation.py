@@ -37,9 +37,13 @@ world z is in fact up - and with the magnetic reference given explicitly in ENU.
 
 * ``dt`` always comes from the timestamps (never a library default rate: ``ahrs`` defaults to
   100 Hz, which turns a 256 Hz recording's rotations into the wrong size, ``ahrs#9``/``#29``).
-  Non-increasing times are not integrated (counted); a gap longer than ``max_gap_s`` is not
-  integrated across: the filter is re-initialised from the accelerometer (and magnetometer),
-  keeping the heading when there is no magnetometer (counted, flagged).
+  Non-increasing times are not integrated (counted); a step longer than ``max_gap_s`` (0.5 s) or
+  than ``gap_periods`` (10) nominal sample periods is a gap and is not integrated across: the filter
+  is re-initialised from the accelerometer (and magnetometer), keeping the heading when there is no
+  magnetometer (counted, flagged). Fusion then runs ``init_grace_s`` (1 s) without rejection and with
+  a gain of at least ``init_gain`` (2), or one accelerometer reading taken in motion could leave it
+  rejecting the accelerometer until its recovery timeout (measured on a reconnecting simulated
+  WitMotion: 54 deg median roll/pitch error before, 2 deg after).
 * ``imufusion`` 1.3.3 ignores the ``convention`` keyword of ``AhrsSettings(...)`` (it stays NWU);
   settings are assigned one by one and read back.
 * ``ahrs`` Mahony winds its integral (bias) term up during a fast spin and keeps the wound-up
@@ -88,14 +92,19 @@ log = logging.getLogger(__name__)
 
 FILTERS = ("fusion", "madgwick", "mahony", "ekf")
 
-# The default filter, chosen by measurement (benchmarks/bench_fusion.py, 2 shared cores):
-#   gaitmap foot IMUs, median (p90) per-stride RMS error vs mocap, deg, left / right foot:
-#     fusion 2.86 (3.45) / 4.29 (5.11); madgwick, mahony, ekf: see the benchmark output
-#   fusion_sensor_data.csv: every filter against fusion (median / p95 angle, deg) in the benchmark
-#   throughput, one filter per-sample: fusion ~250,000 samples/s; ahrs madgwick ~9,000,
-#     mahony ~7,000, ekf ~3,000.
-# Fusion is the most accurate on the gait data, the only one with acceleration and magnetic
-# rejection and recovery, and 30-80x faster: it is the default.
+# The default filter, chosen by measurement (.venv/bin/python benchmarks/bench_fusion.py, 2 shared cores):
+#   gaitmap foot IMUs vs optical mocap, median (p90) per-stride RMS error in deg, cross-validated
+#   mounting, heading aligned per stride, left / right foot:
+#     fusion 2.86 (3.44) / 4.29 (5.11)   madgwick 2.82 (3.40) / 4.22 (4.99)
+#     mahony 2.98 (3.56) / 4.35 (5.21)   ekf      4.11 (5.22) / 5.17 (6.71)
+#   fusion_sensor_data.csv, angle to fusion, median / p95 in deg before the magnetic disturbance
+#   (MARG; IMU-only): madgwick 0.36 / 2.11 (0.19 / 1.63), mahony 0.91 / 6.49 (1.90 / 11.1),
+#   ekf 0.88 / 3.08 (5.12 / 7.70): without acceleration rejection mahony and ekf lose heading in
+#   fast motion; after it, fusion keeps the gyro heading through the disturbance, the others follow it.
+#   throughput, per filter, one call over the file: fusion 200,000-370,000 samples/s; madgwick
+#   ~6,000-10,000, mahony ~6,000-7,000, ekf ~3,500-3,900.
+# Madgwick and Fusion are equally accurate on gait (0.04-0.07 deg apart); Fusion is 30-60x faster
+# and the only one with acceleration/magnetic rejection and recovery: it is the default.
 DEFAULT_FILTER = "fusion"
 
 #: Per-sample flags (bit mask, ``OrientationResult.flags``).
@@ -113,6 +122,8 @@ FLAG_BIAS_FROZEN = 1 << 9   # Mahony: bias integrator frozen or clamped on this 
 _D2R = math.pi / 180.0
 _R2D = 180.0 / math.pi
 _TINY_RATE = 1e-12
+_INV_G0 = 1.0 / G0
+_ZERO3 = np.zeros(3)
 _MODE_RUN, _MODE_SKIP, _MODE_INIT = 0, 1, 2
 
 #: Rotation from Madgwick's native NWU world to ENU (+90 deg about z).
@@ -128,7 +139,10 @@ _DEFAULTS: dict[str, Any] = {
     "gyro_offset": False,         # fusion: run imufusion.Bias (learns the gyro offset at rest, |w| < threshold)
     "offset_threshold_dps": 3.0,  # fusion Bias stationary threshold
     "offset_period_s": 3.0,       # fusion Bias stationary period
-    "max_gap_s": 0.5,
+    "max_gap_s": 0.5,             # a time step longer than this is a gap (not integrated across) ...
+    "gap_periods": 10.0,          # ... and so is one longer than this many nominal sample periods
+    "init_grace_s": 1.0,          # fusion: no rejection for this long after an (re)initialisation ...
+    "init_gain": 2.0,             # ... and at least this gain (a short version of Fusion's startup, which ramps 10 -> 0.5 over 3 s)
     "mag_max_age_s": 0.25,
     "mag_norm_tol": 0.1,          # ahrs filters: ignore |m| off the reference by more than this fraction
     "acc_norm_tol": 0.1,          # ahrs filters: gyro-only update when | |a|/g - 1 | exceeds this (0: off)
@@ -168,6 +182,19 @@ class ImuChannels:
     acc_scale: float
     gyro_idx: tuple[int, int, int]
     gyro_scale: float
+
+    @property
+    def acc_sel(self) -> slice | list[int]:
+        """Column selector of the accelerometer (a slice when the columns are consecutive)."""
+        return _sel(self.acc_idx)
+
+    @property
+    def gyro_sel(self) -> slice | list[int]:
+        return _sel(self.gyro_idx)
+
+
+def _sel(idx: tuple[int, int, int]) -> slice | list[int]:
+    return slice(idx[0], idx[0] + 3) if idx[1] == idx[0] + 1 and idx[2] == idx[0] + 2 else list(idx)
 
 
 @dataclass(frozen=True)
@@ -292,8 +319,11 @@ def gravity_from_quaternion(q: ArrayLike, g: float = G0) -> np.ndarray:
     sensor -> world (z up) quaternions (..., 4): the third row of the rotation matrix times g."""
     q = np.asarray(q, np.float64)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([2.0 * (x * z - w * y) * g, 2.0 * (y * z + w * x) * g,
-                     (w * w - x * x - y * y + z * z) * g], axis=-1)
+    out = np.empty(q.shape[:-1] + (3,))
+    out[..., 0] = 2.0 * (x * z - w * y) * g
+    out[..., 1] = 2.0 * (y * z + w * x) * g
+    out[..., 2] = (w * w - x * x - y * y + z * z) * g
+    return out
 
 
 def initial_orientation(acc: ArrayLike, mag: ArrayLike | None = None, heading_rad: float = 0.0) -> np.ndarray:
@@ -351,6 +381,7 @@ class _FusionBackend(_Backend):
         self._imf = imufusion
         self.ahrs = imufusion.Ahrs()
         self.rate = float(s["nominal_rate_hz"] or 100.0)
+        self.grace_left = 0.0  # seconds of rejection-free updates left after an (re)initialisation
         self._apply_settings()
         self.offset: Any = None
         if s["gyro_offset"]:
@@ -361,14 +392,17 @@ class _FusionBackend(_Backend):
             bs.stationary_period = float(s["offset_period_s"])
             self.offset.set_settings(bs)
 
-    def _apply_settings(self) -> None:
+    def _apply_settings(self, rejection: bool = True) -> None:
         imf = self._imf
         s = self.s
         st = imf.AhrsSettings()
+        gain = 0.5 if s["gain"] is None else float(s["gain"])
         want = {"sample_rate": self.rate, "convention": imf.CONVENTION_ENU,
-                "gain": 0.5 if s["gain"] is None else float(s["gain"]),
-                "gyroscope_range": float(s["gyro_range_dps"]), "acceleration_rejection": float(s["acc_rejection_deg"]),
-                "magnetic_rejection": float(s["mag_rejection_deg"]), "rejection_timeout": float(s["rejection_timeout_s"])}
+                "gain": gain if rejection else max(gain, float(s["init_gain"])),
+                "gyroscope_range": float(s["gyro_range_dps"]),
+                "acceleration_rejection": float(s["acc_rejection_deg"]) if rejection else 0.0,
+                "magnetic_rejection": float(s["mag_rejection_deg"]) if rejection else 0.0,
+                "rejection_timeout": float(s["rejection_timeout_s"])}
         # imufusion 1.3.3 ignores the ``convention`` constructor keyword: assign and read back each one
         for k, v in want.items():
             setattr(st, k, v)
@@ -380,11 +414,25 @@ class _FusionBackend(_Backend):
     def set_rate(self, rate: float) -> None:
         if rate > 0 and not math.isclose(rate, self.rate, rel_tol=1e-3):
             self.rate = rate
-            self._apply_settings()
+            self._apply_settings(self.grace_left <= 0)
 
     def set_enu(self, q_enu: np.ndarray, mag_ref: np.ndarray | None) -> None:
         self.ahrs.set_quaternion(np.asarray(q_enu, np.float64))
         self.ahrs.skip_startup()
+        # One accelerometer reading taken in motion can be 10+ deg off; with rejection on, Fusion
+        # would then ignore the accelerometer until its recovery timeout. Like Fusion's own startup,
+        # run without rejection for a moment after every (re)initialisation.
+        grace = float(self.s["init_grace_s"])
+        if grace > 0:
+            if self.grace_left <= 0:
+                self._apply_settings(rejection=False)
+            self.grace_left = grace
+
+    def tick(self, dt: float) -> None:
+        """Time passes after an update: end the post-initialisation grace when it is over."""
+        self.grace_left -= dt
+        if self.grace_left <= 0:
+            self._apply_settings(rejection=True)
 
     def run(self, dt, gyro, acc, mag, use_mag, mode, flt, Q, F, AE, ME):  # type: ignore[override]
         ahrs = self.ahrs
@@ -396,54 +444,67 @@ class _FusionBackend(_Backend):
         getf = ahrs.get_flags
         off = self.offset.update if self.offset is not None else None
         gd = gyro * _R2D
-        ag = acc * (1.0 / G0)
+        ag = acc * _INV_G0
         acc_ok = np.isfinite(ag).all(axis=1)
         ag[~acc_ok] = 0.0  # Fusion ignores a zero accelerometer: gyro-only update
         nan = math.nan
         n = dt.shape[0]
+        # plain lists and row views made once: the per-sample loop then does no numpy indexing
+        modes = mode.tolist()
+        dts = dt.tolist()
+        oks = acc_ok.tolist()
+        ums = use_mag.tolist()
+        g_rows = list(gd)
+        a_rows = list(ag)
+        m_rows = list(mag) if any(ums) else None
+        qs: list[Any] = [None] * n
+        ae = [nan] * n
+        me = [nan] * n
+        fs = [0] * n
         for i in range(n):
-            md = mode[i]
+            md = modes[i]
             if md:
+                if i:
+                    flt._q = np.array(qs[i - 1], np.float64)
                 if md == _MODE_SKIP:
-                    Q[i] = flt._q
-                    AE[i] = ME[i] = nan
+                    qs[i] = flt._q
                     continue
                 q0 = flt._init_q(i, acc, mag, use_mag)
                 self.set_enu(q0, None)
-                Q[i] = q0
-                AE[i] = ME[i] = nan
+                qs[i] = q0
                 continue
-            g = gd[i]
+            g = g_rows[i]
             if off is not None:
                 g = off(g)
-            setp(dt[i])
-            if use_mag[i]:
-                upd(g, ag[i], mag[i])
+            setp(dts[i])
+            if ums[i]:
+                upd(g, a_rows[i], m_rows[i])  # type: ignore[index]
             else:
-                upd_nm(g, ag[i])
-            q = getq()
-            Q[i] = q
-            flt._q = Q[i]
+                upd_nm(g, a_rows[i])
+            if self.grace_left > 0:
+                self.tick(dts[i])
+            qs[i] = getq()
             st = gets()
             fl = getf()
             f = 0
-            if st.accelerometer_ignored or not acc_ok[i]:
+            if st.accelerometer_ignored or not oks[i]:
                 f |= FLAG_ACC_IGNORED
-            if use_mag[i]:
-                ME[i] = st.magnetic_error
+            if ums[i]:
+                me[i] = st.magnetic_error
                 if st.magnetometer_ignored:
                     f |= FLAG_MAG_IGNORED
-            else:
-                ME[i] = nan
-            AE[i] = st.acceleration_error
+            ae[i] = st.acceleration_error
             if fl.acceleration_recovery:
                 f |= FLAG_ACC_RECOVERY
             if fl.magnetic_recovery:
                 f |= FLAG_MAG_RECOVERY
             if fl.overrange_recovery:
                 f |= FLAG_OVERRANGE
-            if f:
-                F[i] |= f
+            fs[i] = f
+        Q[:] = qs
+        AE[:] = ae
+        ME[:] = me
+        F |= np.array(fs, np.uint16)
 
 
 class _AhrsBackend(_Backend):
@@ -475,6 +536,8 @@ class _AhrsBackend(_Backend):
         for i in range(dt.shape[0]):
             md = mode[i]
             if md:
+                if i:
+                    flt._q = Q[i - 1].copy()
                 if md == _MODE_SKIP:
                     Q[i] = flt._q
                     continue
@@ -488,7 +551,6 @@ class _AhrsBackend(_Backend):
             q = q / nq
             self.q = q
             Q[i] = quat_mul(to_enu, q)
-            flt._q = Q[i]
             if not acc_ok[i]:
                 f |= FLAG_ACC_IGNORED
             if f:
@@ -636,7 +698,12 @@ class OrientationFilter:
         self.kind = kind
         self.settings = s
         self._backend = _BACKENDS[kind](s)
-        self._rate_known = s["nominal_rate_hz"] is not None
+        self._rate_known = s["nominal_rate_hz"] is not None or kind != "fusion"
+        if not (isinstance(s["gap_periods"], (int, float)) and s["gap_periods"] > 1):
+            raise ConfigError(f"orientation setting gap_periods must be a number > 1, got {s['gap_periods']!r}")
+        self._max_gap = float(s["max_gap_s"])
+        if s["nominal_rate_hz"]:
+            self._max_gap = min(self._max_gap, float(s["gap_periods"]) / float(s["nominal_rate_hz"]))
         self._q = np.array([1.0, 0.0, 0.0, 0.0])
         self._t_last: float | None = None
         self._mag_t = np.empty(0)
@@ -759,43 +826,112 @@ class OrientationFilter:
         if n == 0:
             return OrientationResult(Q, np.empty((0, 3)), np.empty((0, 3)), F, AE, ME)
         # time steps, from the timestamps only
-        mode = np.zeros(n, np.int8)
-        g_ok = np.isfinite(g).all(axis=1) & np.isfinite(t)
-        # previous *accepted* time for each sample: a rejected or non-increasing sample does not move it
-        tt = np.where(g_ok, t, -np.inf)
-        run_max = np.maximum.accumulate(np.concatenate([[-np.inf if self._t_last is None else self._t_last], tt]))
-        prev = run_max[:-1]
-        dt = t - prev
-        bad_time = g_ok & (dt <= 0)
-        gap = g_ok & (dt > self.settings["max_gap_s"]) & np.isfinite(prev)
-        first = g_ok & ~np.isfinite(prev)
-        mode[~g_ok | bad_time] = _MODE_SKIP
-        mode[gap | first] = _MODE_INIT
-        F[~g_ok | bad_time] |= FLAG_SKIPPED
-        F[gap] |= FLAG_GAP
-        F[gap | first] |= FLAG_INIT
+        max_gap = self._max_gap
+        ok_all = bool(np.isfinite(t.sum() + g.sum()))
+        t_last = self._t_last
+        if ok_all and t_last is not None:
+            dt = np.empty(n)
+            dt[0] = t[0] - t_last
+            np.subtract(t[1:], t[:-1], out=dt[1:])
+            fast = bool(dt.min() > 0 and dt.max() <= max_gap)
+        else:
+            fast = False
+        if fast:
+            mode = np.zeros(n, np.int8)
+            t_end = float(t[-1])
+        else:
+            mode = np.zeros(n, np.int8)
+            g_ok = np.isfinite(g).all(axis=1) & np.isfinite(t)
+            # previous *accepted* time of each sample: a rejected or non-increasing sample does not move it
+            run_max = np.maximum.accumulate(np.concatenate([[-np.inf if t_last is None else t_last],
+                                                            np.where(g_ok, t, -np.inf)]))
+            prev = run_max[:-1]
+            dt = t - prev
+            bad_time = g_ok & (dt <= 0)
+            gap = g_ok & (dt > max_gap) & np.isfinite(prev)
+            first = g_ok & ~np.isfinite(prev)
+            mode[~g_ok | bad_time] = _MODE_SKIP
+            mode[gap | first] = _MODE_INIT
+            F[~g_ok | bad_time] |= FLAG_SKIPPED
+            F[gap] |= FLAG_GAP
+            F[gap | first] |= FLAG_INIT
+            self.rejected += int(np.count_nonzero(~g_ok))
+            self.non_increasing += int(np.count_nonzero(bad_time))
+            self.gaps += int(np.count_nonzero(gap))
+            t_end = float(run_max[-1]) if np.isfinite(run_max[-1]) else math.nan
         self.samples += n
-        self.rejected += int(np.count_nonzero(~g_ok))
-        self.non_increasing += int(np.count_nonzero(bad_time))
-        self.gaps += int(np.count_nonzero(gap))
-        if not self._rate_known and isinstance(self._backend, _FusionBackend):
-            good = dt[(mode == _MODE_RUN) & (dt > 0)]
-            if good.size >= 2 or (good.size >= 1 and self.integrated > 0):
-                self._backend.set_rate(1.0 / float(np.median(good)))
-                self._rate_known = True
-        mag_arr, have = self._held_mag(t)
-        use_mag = self._gate(t, mag_arr, have)
+        if not self._rate_known:
+            run = np.flatnonzero(mode == _MODE_RUN)
+            if run.size:
+                self._set_rate_from(float(dt[run[0]]))
         if self._mag_seen:
+            mag_arr, have = self._held_mag(t)
+            use_mag = self._gate(t, mag_arr, have)
             F[~have] |= FLAG_NO_MAG
             F[have & ~use_mag] |= FLAG_MAG_IGNORED
             self.mag_stale += int(np.count_nonzero(~have))
             self.mag_used += int(np.count_nonzero(use_mag))
+        else:
+            mag_arr = np.zeros((n, 3))
+            use_mag = np.zeros(n, bool)
         self._backend.run(dt, g, a, mag_arr, use_mag, mode, self, Q, F, AE, ME)
-        self.integrated += int(np.count_nonzero(mode == _MODE_RUN))
-        self._t_last = float(run_max[-1]) if np.isfinite(run_max[-1]) else self._t_last
+        self._q = Q[-1].copy()
+        self.integrated += n if fast else int(np.count_nonzero(mode == _MODE_RUN))
+        if math.isfinite(t_end):
+            self._t_last = t_end
         grav = gravity_from_quaternion(Q)
         lin = a - grav
         return OrientationResult(Q, grav, lin, F, AE, ME)
+
+    def _set_rate_from(self, dt: float) -> None:
+        """Without ``nominal_rate_hz``, Fusion's sample_rate (its startup ramp and rejection timeout in
+        samples) is taken from the first integrated time step: the same sample whatever the chunking."""
+        self._rate_known = True
+        if isinstance(self._backend, _FusionBackend) and dt > 0:
+            self._backend.set_rate(min(10_000.0, max(1.0, 1.0 / dt)))
+
+    def update_one(self, t_s: float, gyro: tuple[float, float, float], acc: tuple[float, float, float]
+                   ) -> tuple[tuple[float, float, float, float], int]:
+        """One sample, the fast way: the same result as :meth:`update_many` on that sample alone
+        (bit for bit), without building arrays where the filter allows (Fusion, no magnetometer
+        stream). Returns the quaternion (sensor -> ENU) and the flags.
+        """
+        be = self._backend
+        if type(be) is not _FusionBackend or self._mag_seen or be.offset is not None:
+            r = self.update_many([t_s], [gyro], [acc])
+            return tuple(r.q[0].tolist()), int(r.flags[0])  # type: ignore[return-value]
+        t_last = self._t_last
+        gx, gy, gz = gyro
+        if (t_last is None or not (math.isfinite(t_s) and math.isfinite(gx) and math.isfinite(gy) and math.isfinite(gz))
+                or not (0.0 < t_s - t_last <= self._max_gap)):
+            r = self.update_many([t_s], [gyro], [acc])
+            return tuple(r.q[0].tolist()), int(r.flags[0])  # type: ignore[return-value]
+        dt = t_s - t_last
+        self.samples += 1
+        if not self._rate_known:
+            self._set_rate_from(dt)
+        ax, ay, az = acc
+        acc_ok = math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az)
+        ahrs = be.ahrs
+        ahrs.set_sample_period(dt)
+        ahrs.update_no_magnetometer(np.array((gx * _R2D, gy * _R2D, gz * _R2D)),
+                                    np.array((ax * _INV_G0, ay * _INV_G0, az * _INV_G0)) if acc_ok else _ZERO3)
+        if be.grace_left > 0:
+            be.tick(dt)
+        q = tuple(ahrs.get_quaternion().tolist())
+        st = ahrs.get_internal_states()
+        fl = ahrs.get_flags()
+        f = 0
+        if st.accelerometer_ignored or not acc_ok:
+            f |= FLAG_ACC_IGNORED
+        if fl.acceleration_recovery:
+            f |= FLAG_ACC_RECOVERY
+        if fl.overrange_recovery:
+            f |= FLAG_OVERRANGE
+        self._q = np.array(q)
+        self._t_last = t_s
+        self.integrated += 1
+        return q, f  # type: ignore[return-value]
 
     def update(self, t_s: float, gyro: ArrayLike, acc: ArrayLike, mag: ArrayLike | None = None) -> OrientationResult:
         """One sample (see :meth:`update_many`)."""
@@ -837,6 +973,7 @@ class _Track:
     bias_est: GyroBiasEstimator | None = None
     auto_bias: np.ndarray | None = None
     auto_bias_checked_s: float = -math.inf
+    fast: bool = False  # Samples take the scalar path (Fusion, no magnetometer, no auto bias)
 
 
 def _prefix(name: str) -> str:
@@ -919,15 +1056,17 @@ class OrientationProcessor(Subscriber):
             self._tracks[info.name] = tr
         by_prefix = {_prefix(t.info.name): t for t in self._tracks.values()}
         for info in mags:
-            tr = by_prefix.get(_prefix(info.name))
-            if tr is None:
+            mtr = by_prefix.get(_prefix(info.name))
+            if mtr is None:
                 raise ConfigError(f"magnetometer stream {info.name} has no IMU stream of the same device among the "
                                   f"inputs ({', '.join(self._tracks)})", source=info.name)
-            if tr.mag is not None:
-                raise ConfigError(f"IMU stream {tr.info.name} has two magnetometer streams ({tr.mag.stream}, {info.name})",
+            if mtr.mag is not None:
+                raise ConfigError(f"IMU stream {mtr.info.name} has two magnetometer streams ({mtr.mag.stream}, {info.name})",
                                   source=info.name)
-            tr.mag = check_mag_stream(info, tr.info)
-            self._mag_to_track[info.name] = tr
+            mtr.mag = check_mag_stream(info, mtr.info)
+            self._mag_to_track[info.name] = mtr
+        for tr in self._tracks.values():
+            tr.fast = filter == "fusion" and tr.mag is None and tr.bias_est is None and not settings.get("gyro_offset")
         self.samples_in = 0
         self.samples_out = 0
         self.mag_in = 0
@@ -964,6 +1103,13 @@ class OrientationProcessor(Subscriber):
 
     # -- data ------------------------------------------------------------------------------------
     def on_item(self, item: Any) -> None:
+        """Process one ``Sample`` or ``SampleBatch`` (items of other streams are counted and ignored).
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+        """
+        if self._publish is None:
+            raise RuntimeError("OrientationProcessor.bind(publish) was not called")
         tr = self._tracks.get(item.stream)
         if tr is None:
             mt = self._mag_to_track.get(item.stream)
@@ -974,7 +1120,10 @@ class OrientationProcessor(Subscriber):
             return
         self.items_in += 1
         if type(item) is Sample:
-            self._run(tr, np.asarray([item.values], np.float64), np.asarray([item.t_bus_ns], np.int64), item)
+            if tr.fast:
+                self._run_one(tr, item)
+            else:
+                self._run(tr, np.asarray([item.values], np.float64), np.asarray([item.t_bus_ns], np.int64), item)
         else:
             self._run(tr, np.asarray(item.values, np.float64), np.asarray(item.t_bus_ns, np.int64), item)
 
@@ -998,13 +1147,50 @@ class OrientationProcessor(Subscriber):
         self.mag_in += v.shape[0]
         tr.flt.add_mag(self._t_s(tr, t_ns), m)
 
+    def _run_one(self, tr: _Track, item: Sample) -> None:
+        """One Sample with Fusion: the arithmetic of :meth:`_run` on plain floats (same results)."""
+        v = item.values
+        ch = tr.chans
+        i0, i1, i2 = ch.acc_idx
+        sc = ch.acc_scale
+        ax, ay, az = v[i0] * sc, v[i1] * sc, v[i2] * sc
+        j0, j1, j2 = ch.gyro_idx
+        sc = ch.gyro_scale
+        gx, gy, gz = v[j0] * sc, v[j1] * sc, v[j2] * sc
+        cal = tr.cal
+        if not cal.sensor_identity:
+            (ax, ay, az), (gx, gy, gz) = cal.apply_one((ax, ay, az), (gx, gy, gz))
+        if tr.origin_ns is None:
+            tr.origin_ns = item.t_bus_ns
+        t = (item.t_bus_ns - tr.origin_ns) / 1e9
+        q, _ = tr.flt.update_one(t, (gx, gy, gz), (ax, ay, az))
+        w, x, y, z = q
+        g0 = G0
+        grav = (2.0 * (x * z - w * y) * g0, 2.0 * (y * z + w * x) * g0, (w * w - x * x - y * y + z * z) * g0)
+        lin = (ax - grav[0], ay - grav[1], az - grav[2])
+        if not cal.body_identity:
+            q = tuple(cal.body_orientation(np.array([q]))[0].tolist())
+            grav = tuple(cal.to_body(np.array([grav]))[0].tolist())
+            lin = tuple(cal.to_body(np.array([lin]))[0].tolist())
+        self.samples_in += 1
+        self.samples_out += 1
+        pub = self._publish
+        assert pub is not None
+        o_q, o_g, o_l = tr.out
+        s0 = tr.seq
+        tr.seq = s0 + 1
+        th, td, tb = item.t_host_ns, item.t_device_ns, item.t_bus_ns
+        pub(Sample(o_q.name, s0, th, td, tb, q))
+        pub(Sample(o_g.name, s0, th, td, tb, grav))
+        pub(Sample(o_l.name, s0, th, td, tb, lin))
+
     def _run(self, tr: _Track, v: np.ndarray, t_ns: np.ndarray, item: Any) -> None:
         n = v.shape[0]
         if n == 0:
             return
         ch = tr.chans
-        acc = v[:, list(ch.acc_idx)] * ch.acc_scale
-        gyro = v[:, list(ch.gyro_idx)] * ch.gyro_scale
+        acc = v[:, ch.acc_sel] * ch.acc_scale
+        gyro = v[:, ch.gyro_sel] * ch.gyro_scale
         cal = tr.cal
         if not cal.sensor_identity:
             acc, gyro, _ = cal.apply(acc, gyro)
@@ -1023,8 +1209,7 @@ class OrientationProcessor(Subscriber):
         self.samples_in += n
         self.samples_out += n
         pub = self._publish
-        if pub is None:
-            raise RuntimeError("OrientationProcessor.bind(publish) was not called")
+        assert pub is not None
         o_q, o_g, o_l = tr.out
         s0 = tr.seq
         tr.seq += n
