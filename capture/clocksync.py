@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
@@ -81,6 +80,47 @@ def _monotone_chain(x: np.ndarray, y: np.ndarray, order: list[int]) -> list[int]
 
 
 _LOOKAHEAD = 512
+
+
+class _BinRing:
+    """The last ``n`` per-bin extreme points (x, y), oldest first, in preallocated arrays."""
+
+    __slots__ = ("_x", "_y", "_n", "_count", "_head")
+
+    def __init__(self, n: int) -> None:
+        self._x = [0.0] * n
+        self._y = [0.0] * n
+        self._n = n
+        self._count = 0
+        self._head = 0  # next row to write
+
+    def clear(self) -> None:
+        self._count = 0
+        self._head = 0
+
+    def append(self, point: tuple[float, float]) -> None:
+        h = self._head
+        self._x[h], self._y[h] = point
+        h += 1
+        self._head = 0 if h == self._n else h
+        if self._count < self._n:
+            self._count += 1
+
+    def __len__(self) -> int:
+        return self._count
+
+    def with_point(self, point: tuple[float, float]) -> np.ndarray:
+        """The stored points in order, then ``point``: an (m + 1, 2) array."""
+        n, c, h = self._n, self._count, self._head
+        out = np.empty((c + 1, 2), np.float64)
+        if c < n:
+            out[:c, 0] = self._x[:c]
+            out[:c, 1] = self._y[:c]
+        else:
+            out[:n, 0] = self._x[h:] + self._x[:h]
+            out[:n, 1] = self._y[h:] + self._y[:h]
+        out[c] = point
+        return out
 
 
 def _first_per_run(hits: np.ndarray, run_id: np.ndarray) -> np.ndarray:
@@ -134,8 +174,8 @@ class ClockSync:
         self._bin_ns = max(1, int(round(bin_s * 1e9)))
         self._refit_ns = max(1, int(round(refit_s * 1e9)))
         n = max(2, int(math.ceil(window_s / bin_s)))
-        self._mins: deque[tuple[float, float]] = deque(maxlen=n)
-        self._maxs: deque[tuple[float, float]] = deque(maxlen=n)
+        self._mins = _BinRing(n)
+        self._maxs = _BinRing(n)
         self._gap_ns = (gap_s * 1e9) if gap_s is not None else max(50e6, 4 * self._period_ns)
         self._last_raw: int | None = None
         self._wraps = 0
@@ -497,7 +537,7 @@ class ClockSync:
             self._refit_slot = slot
 
     def _refit(self) -> None:
-        pts = np.array([*self._mins, self._bin_min], np.float64)
+        pts = self._mins.with_point(self._bin_min)
         xs, ys = pts[:, 0], pts[:, 1]
         if pts.shape[0] < 3 or xs[-1] - xs[0] < 1e9:
             b = self._b
@@ -510,6 +550,6 @@ class ClockSync:
             b = float((ys[i1] - ys[i0]) / (xs[i1] - xs[i0]))
             a = float(ys[i0] - b * xs[i0])
         self._a, self._b = a, b
-        mx = np.array([*self._maxs, self._bin_max], np.float64)
+        mx = self._maxs.with_point(self._bin_max)
         self._delay_hi = max(0.0, float(np.max(mx[:, 1] - (a + b * mx[:, 0]))))
         self._state_dirty = True

@@ -314,6 +314,26 @@ def test_feed_clean_equals_feed_bit_for_bit_or_declines(rows):
     assert c.stats.as_dict() == ref.stats.as_dict()
 
 
+def test_feed_clean_parses_a_long_run_in_blocks_with_the_same_result(monkeypatch):
+    """Long replays are parsed in blocks of whole lines; block edges (here every 32 bytes, lines of
+    many lengths, one line longer than a block) change nothing, and a bad line in a late block
+    still declines the whole run."""
+    from devices.codecs import textline as tl
+    rng = np.random.default_rng(5)
+    rows = [f"{i},{rng.normal() * 10 ** rng.integers(0, 5):.{rng.integers(0, 6)}f},{rng.integers(-999, 999)}\n"
+            for i in range(3000)]
+    rows[1500] = "1500," + "9" * 14 + ".5,-" + "7" * 15 + "\n"  # 42 bytes: longer than a block
+    data = "".join(rows).encode()
+    whole = tl._parse_csv_block(data, 3)
+    monkeypatch.setattr(tl, "_PARSE_BLOCK", 32)
+    blocked = tl._parse_plain_csv(data, 3)
+    assert whole is not None and blocked is not None
+    assert whole[0].tobytes() == blocked[0].tobytes() and np.array_equal(whole[1], blocked[1])
+    c = codec(fmt="csv", columns=("t", "a", "b"))
+    assert np.array([f.values for f in c.feed(data)]).tobytes() == blocked[0].tobytes()
+    assert tl._parse_plain_csv(data + b"1,2\n" + data, 3) is None
+
+
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.tuples(st.integers(0, 2 ** 32 - 1), st.floats(-1e5, 1e5, allow_nan=False),
                           st.integers(0, 9), st.integers(-10 ** 12, 10 ** 12)), min_size=1, max_size=30))
