@@ -494,7 +494,8 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 
 def _collect_imu(spec: Any, seconds: float, s: Any, what: str) -> tuple[Any, dict[str, Any]]:
-    """Read one device for ``seconds``: (the device, arrays t_s, acc m/s^2, gyro rad/s, mag or None)."""
+    """Read one device for ``seconds``: (the device, arrays t_s, acc m/s^2, gyro rad/s, mag and mag_t
+    or None)."""
     import numpy as np
 
     from capture.bus import Overflow, Subscriber
@@ -537,11 +538,35 @@ def _collect_imu(spec: Any, seconds: float, s: Any, what: str) -> tuple[Any, dic
     t = np.concatenate([r[0] for r in rows]) / 1e9
     v = np.concatenate([r[1] for r in rows])
     data = {"t": t, "acc": v[:, list(ch.acc_idx)] * ch.acc_scale, "gyro": v[:, list(ch.gyro_idx)] * ch.gyro_scale,
-            "mag": None}
+            "mag": None, "mag_t": None}
     mrows = got.get(mag_name or "", [])
     if mag_name and mrows:
         data["mag"] = np.concatenate([r[1] for r in mrows])[:, :3]
+        data["mag_t"] = np.concatenate([r[0] for r in mrows]) / 1e9
     return dev, data
+
+
+def _yaw_reset(cal: Any, spec: Any, seconds: float, s: Any) -> Any:
+    """The calibration with a yaw offset that makes the heading held during the still period zero.
+
+    Heading is only reproducible from one session to the next against magnetic north, so this
+    needs a magnetometer (the calibration's hard/soft-iron fit is applied first)."""
+    import numpy as np
+
+    from capture.calibration import still_bias
+    from capture.orientation import DEFAULT_FILTER, OrientationFilter
+
+    dev, d = _collect_imu(spec, seconds, s, "yaw reset: point the body the way that should be heading zero and"
+                          " keep still")
+    if d["mag"] is None:
+        raise ConfigError(f"device {dev.name} has no magnetometer stream: without one a heading does not carry"
+                          " over between sessions, so there is nothing to reset against")
+    still_bias(d["gyro"], d["acc"], d["t"], source=dev.name)  # checks it was held still
+    acc, gyro, _ = cal.apply(d["acc"], d["gyro"])
+    f = OrientationFilter(DEFAULT_FILTER)
+    f.add_mag(d["mag_t"], cal.apply_mag(d["mag"]))
+    r = f.update_many(d["t"], gyro, acc)
+    return cal.with_yaw_reset(r.q[-1])
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -577,10 +602,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             return 0
         out(json.dumps({"file": str(store.path_for(ident)), "calibration": json.loads(current.to_json())}, indent=2))
         return 0
-    steps = [x for x in ("gyro", "accel", "mag", "mounting") if getattr(args, x)]
+    steps = [x for x in ("gyro", "accel", "mag", "mounting", "yaw") if getattr(args, x)]
     if not steps:
         raise ConfigError("say what to calibrate: --gyro (hold still), --accel (still poses), --mag (rotate in all"
-                          " directions), --mounting (reference pose); or --show, --clear, --list")
+                          " directions), --mounting (reference pose), --yaw (face heading zero); or --show,"
+                          " --clear, --list")
     _check_duration(args.seconds)
     report: dict[str, Any] = {}
     cal = current
@@ -622,6 +648,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         cal = replace(cal, mounting=mounting_from_gravity(d["acc"].mean(axis=0)))
         report["mounting"] = list(cal.mounting)
         out(f"mounting (sensor -> segment) {np.round(cal.mounting, 4).tolist()}")
+    if args.yaw:
+        cal = _yaw_reset(cal, spec, args.seconds, s)
+        report["yaw_offset_deg"] = round(float(np.degrees(cal.yaw_offset_rad)), 3)
+        out(f"yaw reset: headings are now measured from this direction (offset {report['yaw_offset_deg']} deg"
+            " from magnetic north)")
     from dataclasses import replace
     cal = replace(cal, device=ident.name, note=f"perfcap calibrate --{' --'.join(steps)}")
     if args.dry_run:
@@ -733,6 +764,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--poses", type=int, default=6, help="orientations asked for by --accel (default 6)")
     c.add_argument("--mag", action="store_true", help="magnetometer hard and soft iron from a rotation dance")
     c.add_argument("--mounting", action="store_true", help="mounting rotation from a still reference pose")
+    c.add_argument("--yaw", action="store_true",
+                   help="yaw reset: the heading held still now becomes zero (needs a magnetometer)")
     c.add_argument("--seconds", type=float, default=5.0, help="how long to read for each step (default 5)")
     c.add_argument("--show", action="store_true", help="print the stored calibration")
     c.add_argument("--clear", action="store_true", help="remove the stored calibration")

@@ -125,6 +125,8 @@ _TINY_RATE = 1e-12
 _INV_G0 = 1.0 / G0
 _ZERO3 = np.zeros(3)
 _MODE_RUN, _MODE_SKIP, _MODE_INIT = 0, 1, 2
+#: how long after a start without a magnetometer reading its first reading still re-initialises
+_HEADING_WAIT_S = 1.0
 
 #: Rotation from Madgwick's native NWU world to ENU (+90 deg about z).
 _NWU_TO_ENU = np.array([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])
@@ -709,6 +711,11 @@ class OrientationFilter:
         self._mag_t = np.empty(0)
         self._mag_v = np.empty((0, 3))
         self._mag_seen = False
+        # an initialisation made without a magnetometer reading (its heading is arbitrary) is
+        # redone at the first usable reading within ``_HEADING_WAIT_S`` of it
+        self._await_heading = True
+        self._init_t = math.nan
+        self.heading_inits = 0
         self._mag_ref_norm: float | None = None
         self._mag_ref_t0: float | None = None
         self._mag_ref_n = 0
@@ -874,6 +881,8 @@ class OrientationFilter:
         else:
             mag_arr = np.zeros((n, 3))
             use_mag = np.zeros(n, bool)
+        if not fast or self._await_heading:
+            self._heading_from_mag(t, mode, use_mag, F)
         self._backend.run(dt, g, a, mag_arr, use_mag, mode, self, Q, F, AE, ME)
         self._q = Q[-1].copy()
         self.integrated += n if fast else int(np.count_nonzero(mode == _MODE_RUN))
@@ -882,6 +891,32 @@ class OrientationFilter:
         grav = gravity_from_quaternion(Q)
         lin = a - grav
         return OrientationResult(Q, grav, lin, F, AE, ME)
+
+    def _heading_from_mag(self, t: np.ndarray, mode: np.ndarray, use_mag: np.ndarray, F: np.ndarray) -> None:
+        """A start (or restart after a gap) usually sees its IMU sample before the magnetometer
+        reading of the same instant, so it starts with an arbitrary heading, which the filter would
+        then take seconds to turn to north. Initialise again at the first usable reading instead."""
+        start = 0
+        inits = np.flatnonzero(mode == _MODE_INIT)
+        if inits.size:
+            k = int(inits[-1])
+            self._init_t = float(t[k])
+            self._await_heading = not bool(use_mag[k])
+            start = k + 1
+        if not self._await_heading:
+            return
+        hits = np.flatnonzero(use_mag[start:] & (mode[start:] == _MODE_RUN))
+        if not hits.size:
+            if math.isfinite(self._init_t) and float(t[-1]) - self._init_t > _HEADING_WAIT_S:
+                self._await_heading = False
+            return
+        j = start + int(hits[0])
+        self._await_heading = False
+        if float(t[j]) - self._init_t <= _HEADING_WAIT_S:
+            mode[j] = _MODE_INIT
+            F[j] |= FLAG_INIT
+            self._init_t = float(t[j])
+            self.heading_inits += 1
 
     def _set_rate_from(self, dt: float) -> None:
         """Without ``nominal_rate_hz``, Fusion's sample_rate (its startup ramp and rejection timeout in

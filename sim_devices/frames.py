@@ -97,11 +97,18 @@ class WavingSource(FrameSource):
         amplitude_deg: size of the waving (0: the device lies still, tilted a little).
         gyro_bias_dps: a constant gyro offset the sensor adds (x, y, z), as real MEMS gyros do.
         gyro_noise_dps: white noise on each gyro axis (standard deviation).
+        heading_deg: a WT901 also sends magnetometer packets, of a field of 20 uT north and 45 uT
+            down (10 counts per uT; north is +y of the ENU world frame), and a still device faces
+            this heading (its yaw). ``None``: no magnetometer.
     """
+
+    #: the simulated earth field, ENU, in magnetometer counts
+    EARTH_FIELD = (0.0, 200.0, -450.0)
 
     def __init__(self, kind: str = "witmotion", rate: float = 200.0, seed: int = 1, device_clock: bool = True,
                  start_ms: int = 12 * 3_600_000, block_s: float = 0.1, amplitude_deg: float = 40.0,
-                 gyro_bias_dps: tuple[float, float, float] = (0.0, 0.0, 0.0), gyro_noise_dps: float = 0.0) -> None:
+                 gyro_bias_dps: tuple[float, float, float] = (0.0, 0.0, 0.0), gyro_noise_dps: float = 0.0,
+                 heading_deg: float | None = None) -> None:
         if kind not in ENCODERS:
             raise ConfigError(f"no simulated serial device of kind {kind!r}; known: {', '.join(sorted(ENCODERS))}")
         self.kind = kind
@@ -114,6 +121,7 @@ class WavingSource(FrameSource):
         self.noise = gyro_noise_dps
         self.rng = np.random.default_rng(seed + 1000)
         self.block = max(1, int(round(rate * block_s)))
+        self.heading = heading_deg
 
     def sense(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the sensor measures at times ``t``: specific force (g), angular rate (deg/s, with the
@@ -123,13 +131,20 @@ class WavingSource(FrameSource):
             roll, pitch = np.radians(10.0), np.radians(-5.0)
             acc = np.tile([-np.sin(pitch), np.cos(pitch) * np.sin(roll), np.cos(pitch) * np.cos(roll)], (n, 1))
             gyro = np.zeros((n, 3))
-            eul = np.tile([10.0, -5.0, 0.0], (n, 1))
+            eul = np.tile([10.0, -5.0, self.heading or 0.0], (n, 1))
         else:
             acc, gyro, eul = self.motion.at_many(t)
         gyro = gyro + self.bias
         if self.noise:
             gyro = gyro + self.rng.normal(0.0, self.noise, gyro.shape)
         return acc, gyro, eul
+
+    def sense_mag(self, eul_deg: np.ndarray) -> np.ndarray:
+        """Magnetometer counts in the sensor frame for roll/pitch/yaw (deg, ZYX, sensor -> ENU)."""
+        from scipy.spatial.transform import Rotation
+
+        r = Rotation.from_euler("ZYX", eul_deg[:, ::-1], degrees=True)
+        return r.inv().apply(np.asarray(self.EARTH_FIELD))
 
     def device_options(self) -> dict[str, Any]:
         return ENCODERS[self.kind].device_options(self)
@@ -158,7 +173,8 @@ class _WitMotionEncoder(_Encoder):
     def encode(self, src: WavingSource, i0: int, t: np.ndarray) -> list[bytes]:
         acc, gyro, eul = src.sense(t)
         dev_ms = (src.start_ms + np.floor(t * 1000.0)) if src.device_clock else None
-        data, step = witmotion_wire(dev_ms, acc, gyro, eul)
+        mag = src.sense_mag(eul) if src.heading is not None else None
+        data, step = witmotion_wire(dev_ms, acc, gyro, eul, mag)
         return [data[k * step:(k + 1) * step] for k in range(t.size)]
 
 

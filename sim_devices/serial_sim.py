@@ -392,6 +392,8 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--no-device-clock", action="store_true", help="do not send device time stamps")
     p.add_argument("--still", action="store_true", help="the device lies still (for perfcap calibrate)")
+    p.add_argument("--heading", type=float, default=None, metavar="DEG",
+                   help="witmotion: also send a magnetometer; a --still device faces this heading")
     p.add_argument("--gyro-bias", default="0,0,0", metavar="X,Y,Z", help="gyro offset the sensor adds, deg/s")
     p.add_argument("--gyro-noise", type=float, default=0.0, metavar="DPS", help="gyro white noise, deg/s")
     p.add_argument("--session", help="play a recorded session's raw bytes instead of synthetic motion")
@@ -433,7 +435,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ConfigError(f"--gyro-bias {args.gyro_bias!r}: expected X,Y,Z in deg/s")
             src = WavingSource(args.kind, args.rate, args.seed, device_clock=not args.no_device_clock,
                                amplitude_deg=0.0 if args.still else 40.0, gyro_bias_dps=bias,  # type: ignore[arg-type]
-                               gyro_noise_dps=args.gyro_noise)
+                               gyro_noise_dps=args.gyro_noise, heading_deg=args.heading)
         sim = PtySerialDevice(src, args.link, burst_ms=args.burst_ms, burst_bytes=args.burst_bytes,
                               garbage=args.garbage, unplug_every=args.unplug_every, unplug_for=args.unplug_for,
                               seed=args.seed)

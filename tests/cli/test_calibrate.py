@@ -99,6 +99,39 @@ def test_orientation_uses_the_calibration_across_reconnects_and_replay(tmp_path)
     assert r.verification["streams"]["wrist/orientation"]["compared"] == len(q)
 
 
+def test_yaw_reset_makes_the_held_heading_zero_in_later_recordings(capsys, tmp_path):
+    """--yaw measures the heading held still (against the simulated earth field) and stores it as the
+    yaw offset; a later recording in the same pose then reads heading zero, with roll and pitch kept."""
+    from capture.calibration import quat_heading
+
+    caldir = str(tmp_path / "cal")
+    src = WavingSource("witmotion", 200.0, seed=4, amplitude_deg=0.0, heading_deg=30.0)
+    with PtySerialDevice(src) as sim:
+        dev = f"wrist=witmotion@serial://{sim.path}?rate=200&device_clock=true"
+        code, out, err = run(capsys, "calibrate", "-d", dev, "--yaw", "--seconds", "2",
+                             "--calibration-dir", caldir, "--json")
+        assert code == 0, err
+        rep = json.loads(out.strip().splitlines()[-1])
+        assert abs(rep["yaw_offset_deg"] - 30.0) < 2.0, rep
+        take = str(tmp_path / "t.mcap")
+        code, _, err = run(capsys, "record", "-q", "-d", dev, "-o", take, "--orientation", "--duration", "2",
+                           "--calibration-dir", caldir)
+        assert code == 0, err
+    q = SessionReader(take).samples("wrist/orientation").values[-100:]
+    heading = np.degrees([quat_heading(x) for x in q])
+    assert np.all(np.abs(heading) < 2.0), heading
+    w, x, y, z = q[-1]
+    assert abs(np.degrees(np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))) - 10.0) < 1.0
+
+
+def test_yaw_reset_needs_a_magnetometer(capsys, tmp_path):
+    with PtySerialDevice(WavingSource("witmotion", 200.0, seed=5, amplitude_deg=0.0)) as sim:
+        code, _, err = run(capsys, "calibrate", "-d", f"w=witmotion@serial://{sim.path}?rate=200", "--yaw",
+                           "--seconds", "0.5", "--calibration-dir", str(tmp_path))
+    assert code == 2 and "no magnetometer" in err
+    assert not list(tmp_path.glob("*.json"))
+
+
 def test_replay_orientation_of_a_session_recorded_without_it(tmp_path):
     out = str(tmp_path / "plain.mcap")
     Capture(["wrist=synth://imu?rate=200&realtime=false&duration=2"], output=out).run(None)

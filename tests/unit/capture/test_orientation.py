@@ -501,3 +501,30 @@ def test_processor_auto_bias_applied_when_confident() -> None:
     ab = p.auto_bias("wrist/imu")
     assert ab is not None
     np.testing.assert_allclose(ab, bias, atol=0.03 * D2R)
+
+
+@pytest.mark.parametrize("kind", ["fusion", "madgwick", "mahony", "ekf"])
+def test_a_start_before_the_first_mag_reading_takes_its_heading_from_that_reading(kind):
+    """Live, a reading's IMU sample reaches the filter before its magnetometer sample, so the start
+    has no heading; the first reading (within a second) re-initialises it instead of the filter
+    slowly turning to north over seconds. Still sensor, tilted, facing 60 degrees."""
+    r = Rotation.from_euler("ZYX", [60.0, -5.0, 10.0], degrees=True)  # sensor -> ENU
+    acc = r.inv().apply([0.0, 0.0, G0])
+    mag = r.inv().apply([0.0, 20.0, -45.0])
+    f = OrientationFilter(kind)
+    heads = []
+    for i in range(50):
+        t = i / 100
+        res = f.update_many([t], [[0.0, 0.0, 0.0]], [acc])
+        f.add_mag([t], [mag])
+        heads.append(math.degrees(quat_heading(res.q[0])))
+    assert abs(heads[0]) < 1e-6  # nothing to take a heading from yet
+    assert f.heading_inits == 1
+    assert np.allclose(heads[1:], 60.0, atol=1.0), heads[:5]
+    # a magnetometer that only turns up after a second does not make the orientation jump
+    g = OrientationFilter(kind)
+    for i in range(150):
+        g.update_many([i / 100], [[0.0, 0.0, 0.0]], [acc])
+    g.add_mag([1.5], [mag])
+    g.update_many([1.51], [[0.0, 0.0, 0.0]], [acc])
+    assert g.heading_inits == 0
