@@ -27,7 +27,9 @@ sys.setswitchinterval(0.0005)  # as the perfcap CLI does for live work
 import argparse  # noqa: E402
 import os  # noqa: E402
 import subprocess  # noqa: E402
+import select  # noqa: E402
 import tempfile  # noqa: E402
+import threading  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -215,6 +217,43 @@ def live_cpu(seconds: float = 15.0) -> None:
         print(f"   {n} IMU readings ({n / wall:.0f}/s), CPU {cpu:.2f} s in {wall:.1f} s = {frac * 100:.2f}% of one core"
               f" ({cpu / max(1, n) * 1e6:.1f} us per reading, all streams)")
         check("4 ports x 200 Hz live: < 5% of one core", frac < 0.05, f"{frac * 100:.2f}%")
+    # baseline: the least a Python reader can do, one thread per port that only waits and reads
+    with tempfile.TemporaryDirectory() as tmp:
+        links = [os.path.join(tmp, f"tty{i}") for i in range(4)]
+        sims = [start_sim(link, 200.0, seconds + 3, seed=i + 1) for i, link in enumerate(links)]
+        for link in links:
+            t_wait = time.monotonic() + 10
+            while not os.path.exists(link) and time.monotonic() < t_wait:
+                time.sleep(0.01)
+        ports = [serial.Serial(link, timeout=0) for link in links]
+        stop = threading.Event()
+        got = [0] * len(ports)
+
+        def bare(k: int, fd: int) -> None:
+            while not stop.is_set():
+                r, _, _ = select.select((fd,), (), (), 0.1)
+                if r:
+                    try:
+                        got[k] += len(os.read(fd, 4096))
+                    except OSError:
+                        return
+
+        threads = [threading.Thread(target=bare, args=(k, p.fileno()), daemon=True) for k, p in enumerate(ports)]
+        c0, w0 = time.process_time(), time.perf_counter()
+        for t in threads:
+            t.start()
+        time.sleep(seconds)
+        stop.set()
+        for t in threads:
+            t.join(1)
+        bcpu, bwall = time.process_time() - c0, time.perf_counter() - w0
+        for p in ports:
+            p.close()
+        for s in sims:
+            s.wait(30)
+        print(f"   baseline (a bare select + os.read thread per port, no decoding): {sum(got) / 44 / bwall:.0f} readings/s,"
+              f" {bcpu / bwall * 100:.2f}% of one core -> perfcap's decoding, stamping and bus cost"
+              f" {(frac - bcpu / bwall) * 100:.2f}% on top")
     print()
 
 
