@@ -430,6 +430,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                    f"{clk.get('epochs', 1)} epoch(s)"
             if dev in accuracy:
                 desc += f"; bus times within {accuracy[dev]:.2f} ms of the true reading times (p99, after the first second)"
+        if dev == "hand" and sim is not None and st["drops"]:
+            desc += f"; its drops are the readings sent during the {DEMO_UNPLUG_FOR:g} s it was unplugged"
         out(f"  {st['name']:12s} {st['samples']:6d} samples {st['rate_hz']:7.2f} Hz  {st['drops']} drops  {desc}")
     rep = replay_session(path, speed=0)
     ver = rep.verification or {}
