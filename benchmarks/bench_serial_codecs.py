@@ -29,28 +29,11 @@ from capture.sample import Chunk, ChunkRun
 from devices.bno08x import Bno08xRvcImu, encode_rvc_many
 from devices.codecs.bno08x_rvc import FRAME_LEN, Bno08xRvcCodec
 from devices.textline import TextLineImu, TextLineLayout
-from devices.transports.base import Transport
+from devices.transports import open_transport
 
 TARGET = 1_000_000
 OPTS = {"format": "csv", "columns": "t,ax,ay,az,gx,gy,gz", "units": "ms,g,g,g,dps,dps,dps", "time": "t",
         "time_wrap": "u32", "rate": "100"}
-
-
-class _Null(Transport):
-    scheme = "bench"
-
-    def open(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-    @property
-    def is_open(self) -> bool:
-        return True
-
-    def read(self, timeout: float) -> Chunk | None:
-        return None
 
 
 def best_rate(n: int, fn: Callable[[], object], repeat: int = 3) -> float:
@@ -115,12 +98,12 @@ def bench_bno() -> None:
     ch = chunks_of(wire[:m * FRAME_LEN], 120, 6_300_000)
 
     def per_chunk() -> None:
-        d = Bno08xRvcImu("b", _Null("x"))
+        d = Bno08xRvcImu("b", open_transport("loop://"))
         for c in ch:
             d.process_chunk(c)
 
     def batched() -> None:
-        d = Bno08xRvcImu("b", _Null("x"))
+        d = Bno08xRvcImu("b", open_transport("loop://"))
         for k in range(0, len(ch), 4096):
             d.process_chunks(ChunkRun.from_chunks(ch[k:k + 4096]))
 
@@ -174,12 +157,12 @@ def bench_textline() -> None:
     m = sum(c.data.count(b"\n") for c in ch)
 
     def per_chunk() -> None:
-        d = TextLineImu("s", _Null("x"), OPTS)
+        d = TextLineImu("s", open_transport("loop://"), OPTS)
         for c in ch:
             d.process_chunk(c)
 
     def batched() -> None:
-        d = TextLineImu("s", _Null("x"), OPTS)
+        d = TextLineImu("s", open_transport("loop://"), OPTS)
         for k in range(0, len(ch), 4096):
             d.process_chunks(ChunkRun.from_chunks(ch[k:k + 4096]))
 

@@ -16,33 +16,14 @@ from capture.sample import Chunk, ChunkRun, Sample, SampleBatch
 from devices import DEVICE_TYPES, device_class, open_device
 from devices.bno08x import ACC_Q, Bno08xRvcImu, encode_rvc, encode_rvc_many, rvc_frame
 from devices.codecs.bno08x_rvc import FRAME_LEN, Bno08xRvcCodec, RvcFrame
-from devices.transports.base import Transport
+from devices.transports import open_transport
 
 DATASHEET_FRAME = (Path(__file__).resolve().parents[3] / ".." / "shared" / "traces" / "c_serial_imu"
                    / "bno08x_uart_rvc_datasheet_example_frame.bin")
 
 
-class NullTransport(Transport):
-    """A transport that is never read: the tests hand chunks to the device directly."""
-
-    scheme = "test"
-
-    def open(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-    @property
-    def is_open(self) -> bool:
-        return True
-
-    def read(self, timeout: float) -> Chunk | None:
-        return None
-
-
 def device(**opts) -> Bno08xRvcImu:
-    return Bno08xRvcImu("b", NullTransport("x"), opts)
+    return Bno08xRvcImu("b", open_transport("loop://"), opts)
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ from capture.sample import Chunk, ChunkRun, Sample, SampleBatch
 from devices import DEVICE_TYPES, device_class, open_device
 from devices.codecs.textline import TextFrame, TextLineCodec, format_number
 from devices.textline import TextLineImu, TextLineLayout
-from devices.transports.base import Transport
+from devices.transports import open_transport
 from devices.witmotion import WitMotionImu
 
 G = 9.80665
@@ -25,27 +25,8 @@ DEG = math.pi / 180.0
 EXAMPLE = {"format": "csv", "columns": "t,ax,ay,az,gx,gy,gz", "units": "ms,g,g,g,dps,dps,dps", "time": "t"}
 
 
-class NullTransport(Transport):
-    """A transport that is never read: the tests hand chunks to the device directly."""
-
-    scheme = "test"
-
-    def open(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-    @property
-    def is_open(self) -> bool:
-        return True
-
-    def read(self, timeout: float) -> Chunk | None:
-        return None
-
-
 def device(**opts) -> TextLineImu:
-    return TextLineImu("s", NullTransport("x"), opts)
+    return TextLineImu("s", open_transport("loop://"), opts)
 
 
 def samples(items, stream: str) -> list[Sample]:
@@ -79,7 +60,7 @@ def test_key_value_line_with_mixed_separators_gives_the_same_reading():
 
 
 def test_imu_channels_match_the_witmotion_imu_stream():
-    w = WitMotionImu("w", NullTransport("x"), {})
+    w = WitMotionImu("w", open_transport("loop://"), {})
     assert device().streams[0].channels == w.streams[0].channels[:6] == ("ax", "ay", "az", "gx", "gy", "gz")
     assert DEVICE_TYPES["textline"] == ("devices.textline", "TextLineImu") and device_class("textline") is TextLineImu
 
