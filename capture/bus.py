@@ -29,12 +29,22 @@ from typing import Any
 from collections.abc import Iterable
 
 from capture.clock import MONOTONIC, Clock
-from capture.sample import ClockState, DeviceChunk, DeviceChunks, DeviceEvent, EventKind, Sample, SampleBatch
+from capture.sample import (
+    ClockState,
+    DeviceChunk,
+    DeviceChunks,
+    DeviceDescriptor,
+    DeviceEvent,
+    EventKind,
+    Sample,
+    SampleBatch,
+)
 
 log = logging.getLogger(__name__)
 
 SAMPLES: frozenset[type] = frozenset({Sample, SampleBatch})
-EVERYTHING: frozenset[type] = frozenset({Sample, SampleBatch, DeviceChunk, DeviceChunks, ClockState, DeviceEvent})
+EVERYTHING: frozenset[type] = frozenset({Sample, SampleBatch, DeviceChunk, DeviceChunks, ClockState, DeviceEvent,
+                                         DeviceDescriptor})
 
 _STOP = object()
 

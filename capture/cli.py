@@ -17,8 +17,8 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 from capture import __version__
 from capture.errors import CaptureError, ConfigError
@@ -446,16 +446,50 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from devices.doctor import RULES_NAME, diagnose, udev_rules
+
+    if args.udev:
+        out(udev_rules().rstrip())
+        out(f"# save as /etc/udev/rules.d/{RULES_NAME}, then: sudo udevadm control --reload-rules &&"
+            " sudo udevadm trigger, and replug the device")
+        return 0
+    rep = diagnose()
+    if args.json:
+        out(json.dumps(rep.as_dict(), indent=2))
+        return 0 if rep.ok else 1
+    if rep.usb:
+        out(f"USB: {len(rep.usb)} device(s); known to perfcap: "
+            + (", ".join(f"{u['known_as']} [{u['vid_pid']}]" for u in rep.usb if u["known_as"]) or "none"))
+    for f in rep.findings:
+        mark = "ok  " if f.ok else "FAIL"
+        out(f"{mark} {f.what} at {f.where}" + (f" -> {f.kind}@{f.url}" if f.ok and f.kind and f.url else ""))
+        if not f.ok:
+            out(f"     problem: {f.problem}")
+            for line in f.fix.splitlines():
+                out(f"     {line}")
+    for n in rep.notes:
+        out(f"note: {n}")
+    return 0 if rep.ok else 1
+
+
 def cmd_devices(args: argparse.Namespace) -> int:
     from devices import device_class, known_kinds, known_schemes
     from devices.options import describe
     from devices.transports import transport_class
+    from devices.transports.hid import list_hid_devices
     from devices.transports.serialport import list_serial_ports
 
     ports = list_serial_ports()
+    try:
+        hids = list_hid_devices()
+        hid_error = ""
+    except CaptureError as exc:
+        hids, hid_error = [], str(exc)
     if args.json:
         doc = {
             "serial_ports": [p.as_dict() for p in ports],
+            "hid_devices": [h.as_dict() for h in hids],
             "kinds": {k: {"description": device_class(k).description,
                           "options": {n: {"default": o.default, "help": o.help, "form": o.form()}
                                       for n, o in device_class(k).options.items()}} for k in known_kinds()},
@@ -480,6 +514,17 @@ def cmd_devices(args: argparse.Namespace) -> int:
                 " low_latency=true (the default) asks for 1 ms")
         if p.adapter and p.adapter.note:
             out(f"      note: {p.adapter.note}")
+    out("HID devices:")
+    if hid_error:
+        out(f"  cannot list them: {hid_error}")
+    elif not hids:
+        out("  none found (controllers, mice and tablets show up here; perfcap doctor explains one that does not;"
+            " simhid://dualsense is a simulated one)")
+    for h in hids:
+        known = h.as_dict()["known_as"] or f"usage {h.usage_page:#06x}:{h.usage:#06x}"
+        kind = f"; kind {h.likely_kind}" if h.likely_kind else ""
+        out(f"  {h.vid_pid} {h.product or 'unnamed'} ({h.manufacturer or 'unknown maker'}) over {h.bus}: {known}{kind}")
+        out(f"      open as {h.likely_kind or 'KIND'}@{h.url}" + ("" if h.serial_number else f"  or hid://path={h.path}"))
     out("device kinds (KIND@ in a device string):")
     for k in known_kinds():
         c = device_class(k)
@@ -553,7 +598,6 @@ def _yaw_reset(cal: Any, spec: Any, seconds: float, s: Any) -> Any:
 
     Heading is only reproducible from one session to the next against magnetic north, so this
     needs a magnetometer (the calibration's hard/soft-iron fit is applied first)."""
-    import numpy as np
 
     from capture.calibration import still_bias
     from capture.orientation import DEFAULT_FILTER, OrientationFilter
@@ -574,8 +618,14 @@ def _yaw_reset(cal: Any, spec: Any, seconds: float, s: Any) -> Any:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from capture.calibration import (ImuCalibration, fit_accelerometer, fit_magnetometer, mounting_from_gravity,
-                                     still_bias, still_poses)
+    from capture.calibration import (
+        ImuCalibration,
+        fit_accelerometer,
+        fit_magnetometer,
+        mounting_from_gravity,
+        still_bias,
+        still_poses,
+    )
     from capture.calibration_store import CalibrationStore
     from devices import open_device, parse_device_spec
 
@@ -755,9 +805,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
-    dv = sub.add_parser("devices", help="list serial ports present, device kinds and transports")
+    dv = sub.add_parser("devices", help="list serial ports and HID devices present, device kinds and transports")
     dv.add_argument("--json", action="store_true", help="one JSON object")
     dv.set_defaults(func=cmd_devices)
+
+    dr = sub.add_parser("doctor", help="which capture devices are present, which cannot be opened and why")
+    dr.add_argument("--udev", action="store_true", help="print perfcap's udev rules file and where it goes")
+    dr.add_argument("--json", action="store_true", help="one JSON object")
+    dr.set_defaults(func=cmd_doctor)
 
     c = sub.add_parser("calibrate", help="calibrate an IMU (gyro bias, accelerometer, magnetometer, mounting)")
     c.add_argument("-d", "--device", metavar="DEVICE", help=f"the device, as for record ({SPEC_FORM})")
@@ -809,7 +864,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except Exception as exc:  # noqa: BLE001 - never a traceback to a user
+    except Exception as exc:
         if args.debug:
             raise
         print(f"perfcap: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details; "

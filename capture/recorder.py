@@ -20,6 +20,7 @@ from capture.sample import (
     ClockState,
     DeviceChunk,
     DeviceChunks,
+    DeviceDescriptor,
     DeviceEvent,
     DeviceIdentity,
     Sample,
@@ -164,6 +165,8 @@ class SessionRecorder(Subscriber):
         for c in ctrl:
             if type(c) is ClockState:
                 w.write_clock(c, now)  # type: ignore[arg-type]
+            elif type(c) is DeviceDescriptor:
+                w.add_descriptor(c.device, c.key, c.data)  # type: ignore[union-attr]
             else:
                 w.write_event(c, now)  # type: ignore[arg-type]
 

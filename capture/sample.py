@@ -298,5 +298,15 @@ class DeviceEvent(NamedTuple):
         return {"source": self.source, "kind": self.kind.value, "t_host_ns": self.t_host_ns, "detail": self.detail}
 
 
+class DeviceDescriptor(NamedTuple):
+    """A blob that describes a device, learned while it runs (a HID report descriptor, a factory
+    calibration read in the handshake); stored with the device in the session, the latest winning."""
+
+    device: str
+    key: str
+    data: bytes
+    t_host_ns: int
+
+
 #: Everything the bus carries.
-BusItem = Sample | SampleBatch | DeviceChunk | DeviceChunks | ClockState | DeviceEvent
+BusItem = Sample | SampleBatch | DeviceChunk | DeviceChunks | ClockState | DeviceEvent | DeviceDescriptor

@@ -30,6 +30,11 @@ DEVICE_TYPES: dict[str, tuple[str, str]] = {
     "witmotion": ("devices.witmotion", "WitMotionImu"),
     "bno08x_rvc": ("devices.bno08x", "Bno08xRvcImu"),
     "textline": ("devices.textline", "TextLineImu"),
+    "hid": ("devices.hid.generic", "GenericHid"),
+    "ds4": ("devices.hid.sony", "DualShock4"),
+    "dualsense": ("devices.hid.sony", "DualSense"),
+    "switchpro": ("devices.hid.nintendo", "SwitchPro"),
+    "joycon": ("devices.hid.nintendo", "JoyCon"),
 }
 
 SPEC_FORM = "[NAME=][KIND@]SCHEME://ADDRESS[?key=value&...]"
@@ -139,7 +144,8 @@ def open_device(spec: DeviceSpec | str, *, clock: Clock = MONOTONIC, taken_names
             raise ConfigError(f"device {str(spec)!r}: option {k!r} is given both in the URL and in options",
                               source=str(spec))
         given[k] = v
-    t_opts = {k: v for k, v in given.items() if k in tcls.options}
+    t_spec = {**tcls.options, **tcls.extra_options(address)}
+    t_opts = {k: v for k, v in given.items() if k in t_spec}
     if extra_transport_options:
         t_opts.update(extra_transport_options)
     transport = tcls(address, t_opts, clock=clock)
@@ -152,12 +158,12 @@ def open_device(spec: DeviceSpec | str, *, clock: Clock = MONOTONIC, taken_names
     dcls = device_class(kind)
     d_opts: dict[str, Any] = dict(transport.implied_device_options())
     for k, v in given.items():
-        if k in tcls.options:
+        if k in t_spec:
             continue
         if k in dcls.options:
             d_opts[k] = v
         else:
-            known = sorted(set(tcls.options) | set(dcls.options))
+            known = sorted(set(t_spec) | set(dcls.options))
             raise ConfigError(f"device {str(spec)!r}: unknown option {k!r}; {kind}@{scheme}:// takes: "
                               f"{', '.join(known) or 'no options'} (form {SPEC_FORM})", source=str(spec))
     name = spec.name or transport.implied_name()

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from typing import Any
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -25,12 +25,18 @@ from capture.sample import Chunk, ChunkRun, Direction
 from capture.session import DeviceRecord, SessionReader
 from devices.options import Option
 from devices.transports.base import Transport
+from devices.transports.hid import HidTransportBase
 
 log = logging.getLogger(__name__)
 
 
-class ReplayTransport(Transport):
-    """Recorded chunks of one device, replayed with their timing; see the module docstring."""
+class ReplayTransport(Transport, HidTransportBase):
+    """Recorded chunks of one device, replayed with their timing; see the module docstring.
+
+    For a HID device it also answers the HID handshake calls from the recording: feature reports
+    and the report descriptor from the device's descriptors (``hid.feature.XX``,
+    ``hid.report_descriptor``), feature writes compared like output reports, and the bus it was on.
+    """
 
     scheme = "replay"
     usage = "replay://SESSION.mcap?device=NAME&speed=1"
@@ -115,6 +121,28 @@ class ReplayTransport(Transport):
         if self._chunks is None or self._i >= len(self._rx):
             return None
         return int(self._rx_t[self._i]) + self._pass * self._span
+
+    # -- HID handshake calls, answered from the recording -------------------------------------------
+    @property
+    def bus(self) -> str:  # type: ignore[override]
+        return self.record.descriptors.get("hid.bus", b"unknown").decode(errors="replace")
+
+    def get_feature_report(self, report_id: int, length: int) -> bytes:
+        blob = self.record.descriptors.get(f"hid.feature.{report_id:02x}")
+        if blob is None:
+            raise DeviceIOError(f"{self.url}: feature report 0x{report_id:02x} was not recorded for"
+                                f" {self.record.name}", source=self.url)
+        return bytes(blob[:length])
+
+    def send_feature_report(self, data: bytes) -> Chunk:
+        return self.write(data)
+
+    def report_descriptor(self) -> bytes:
+        blob = self.record.descriptors.get("hid.report_descriptor")
+        if blob is None:
+            raise DeviceIOError(f"{self.url}: no report descriptor was recorded for {self.record.name}",
+                                source=self.url)
+        return bytes(blob)
 
     def write(self, data: bytes) -> Chunk:
         if not self._open:

@@ -20,6 +20,32 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      help="run hardware-in-the-loop tests against this device string (repeatable)")
     parser.addoption("--hil-serial", default=None, metavar="PORT",
                      help="a serial IMU port for HIL tests (e.g. /dev/ttyUSB0); same as --hil-device=witmotion@serial://PORT")
+    parser.addoption("--hil-controller", default=None, metavar="VID:PID",
+                     help="a motion controller for HID HIL tests (054c:0ce6 DualSense, 054c:05c4 DS4, 057e:2009 Switch Pro)")
+    parser.addoption("--hil-mouse", default=None, metavar="VID:PID", help="a mouse for HID HIL tests (move it)")
+    parser.addoption("--hil-tablet", default=None, metavar="VID:PID", help="a pen tablet for HID HIL tests (draw)")
+
+
+def _hil_hid(request: pytest.FixtureRequest, flag: str) -> str:
+    v = request.config.getoption(flag)
+    if not v:
+        pytest.skip(f"needs real hardware: pass {flag}=VID:PID")
+    return str(v)
+
+
+@pytest.fixture
+def hil_controller(request: pytest.FixtureRequest) -> str:
+    return _hil_hid(request, "--hil-controller")
+
+
+@pytest.fixture
+def hil_mouse(request: pytest.FixtureRequest) -> str:
+    return _hil_hid(request, "--hil-mouse")
+
+
+@pytest.fixture
+def hil_tablet(request: pytest.FixtureRequest) -> str:
+    return _hil_hid(request, "--hil-tablet")
 
 
 @pytest.fixture

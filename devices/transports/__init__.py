@@ -26,6 +26,7 @@ TRANSPORTS: dict[str, tuple[str, str]] = {
     "rfc2217": ("devices.transports.serialport", "Rfc2217Transport"),
     "socket": ("devices.transports.serialport", "SocketTransport"),
     "loop": ("devices.transports.serialport", "LoopTransport"),
+    "hid": ("devices.transports.hid", "HidTransport"),
 }
 
 _ENTRY_POINT_GROUP = "perfcap.transports"

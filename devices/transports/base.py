@@ -42,6 +42,11 @@ class Transport(abc.ABC):
         q = "&".join(f"{k}={v}" for k, v in self._given.items())
         return f"{self.scheme}://{self.address}" + (f"?{q}" if q else "")
 
+    @classmethod
+    def extra_options(cls, address: str) -> Mapping[str, Option]:
+        """Options that depend on the address (a simulator's device model adds its own)."""
+        return {}
+
     # -- what a device may learn from the transport before opening ---------------------------------
     def implied_kind(self) -> str | None:
         """The device kind this transport carries, if it knows (simulators and replays do)."""

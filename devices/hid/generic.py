@@ -1,0 +1,328 @@
+"""``hid``: any HID mouse, pen digitizer or touch digitizer, decoded from its report descriptor.
+
+The streams depend on what the descriptor describes (``devices.hid.descriptor.classify``):
+
+* mouse -> ``<name>/pointer`` (dx, dy in counts; wheel, hwheel in detents: with a Resolution
+  Multiplier the handshake sets it to its maximum, as Linux does, and a wheel count is then
+  ``1/multiplier`` detent) and ``<name>/buttons`` (one 0/1 channel per button);
+* pen -> ``<name>/pen``: x, y (m, or 0..1 of the surface when the descriptor gives no physical
+  size), pressure 0..1, tilt_x, tilt_y (deg), in_range, tip, barrel, eraser;
+* touch -> ``<name>/touch``: one reading per reported contact: contact_id, tip, x, y, width, height
+  (m or 0..1), contact_count (hybrid mode - the count in the first of several reports - handled).
+
+Streams are declared before opening, so the descriptor is needed up front: the ``rdesc`` option
+(hex), else the transport's ``report_descriptor()`` if it answers before open (simulators do),
+else the standard layout of ``profile``. The handshake reads the real descriptor and fails if it
+would change the declared streams. These devices have no clock: ``clock=None`` and the nominal
+rate from ``rate`` (default: mouse 1000 Hz, pen 200 Hz, touch 100 Hz).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from capture.errors import CaptureError, ConfigError, DeviceInitError
+from capture.sample import StreamInfo
+from devices.base import Reading
+from devices.hid.base import HidDevice
+from devices.hid.descriptor import (
+    AC_PAN,
+    BUTTON_PAGE,
+    DIG_BARREL,
+    DIG_CONTACT_COUNT,
+    DIG_CONTACT_ID,
+    DIG_DIGITIZER,
+    DIG_ERASER,
+    DIG_HEIGHT,
+    DIG_IN_RANGE,
+    DIG_INVERT,
+    DIG_TIP_PRESSURE,
+    DIG_TIP_SWITCH,
+    DIG_WIDTH,
+    DIG_X_TILT,
+    DIG_Y_TILT,
+    GD_WHEEL,
+    GD_X,
+    GD_Y,
+    MOUSE_APPS,
+    PEN_APPS,
+    STANDARD_DESCRIPTORS,
+    TOUCH_APPS,
+    DescriptorLayout,
+    FieldLayout,
+    HidReportCodec,
+    ReportLayout,
+    parse_descriptor,
+)
+from devices.options import Option
+
+log = logging.getLogger(__name__)
+
+DEFAULT_RATES = {"mouse": 1000.0, "pen": 200.0, "touch": 100.0}
+NAN = math.nan
+Plan = Callable[[list[Any]], list[Reading]]
+
+
+def _idx(fields: list[FieldLayout], usage: int) -> int | None:
+    for f in fields:
+        if f.usage == usage and not f.is_array:
+            return f.index
+    return None
+
+
+class GenericHid(HidDevice):
+    """A HID mouse, pen or touch digitizer, decoded from its report descriptor."""
+
+    kind = "hid"
+    description = "HID mouse, pen or touch digitizer (descriptor-driven)"
+    codec_cls = HidReportCodec
+    codec: HidReportCodec
+    options = {
+        "rdesc": Option(str, "", "the report descriptor as hex (else asked of the transport before open)"),
+        "profile": Option(str, "auto", "which part to publish; with no descriptor known before open, the"
+                          " standard layout to assume", choices=("auto", "mouse", "pen", "touch")),
+        "rate": Option(float, 0.0, "nominal report rate, Hz (0 = mouse 1000, pen 200, touch 100)", min=0.0,
+                       max=100_000.0),
+    }
+
+    # -- the descriptor before open ------------------------------------------------------------------
+    def _initial_descriptor(self) -> tuple[bytes, str]:
+        hx = self.opts["rdesc"].strip()
+        if hx:
+            try:
+                return bytes.fromhex(hx.replace(":", "").replace(" ", "")), "option rdesc"
+            except ValueError:
+                raise ConfigError(f"device {self.name} (hid): option rdesc is not hex bytes", source=self.name) \
+                    from None
+        t = self.transport
+        responder = getattr(t, "responder", None)
+        for ask in (getattr(responder, "report_descriptor", None), getattr(t, "report_descriptor", None)):
+            if ask is None:
+                continue
+            try:
+                data = bytes(ask())
+            except (CaptureError, OSError, NotImplementedError, AttributeError) as exc:
+                log.debug("device %s: report descriptor not available before open: %s", self.name, exc)
+                continue
+            if data:
+                return data, f"{t.url}"
+        profile = self.opts["profile"]
+        if profile == "auto":
+            profile = "mouse"
+            log.warning("device %s (hid): no report descriptor before open and profile=auto: assuming a standard"
+                        " mouse; give rdesc=HEX or profile=mouse|pen|touch", self.name)
+        return STANDARD_DESCRIPTORS[profile], f"standard {profile} layout"
+
+    def _classes(self, layout: DescriptorLayout, source: str) -> tuple[str, ...]:
+        profile = self.opts["profile"]
+        if profile != "auto":
+            if profile not in layout.classes:
+                raise ConfigError(f"device {self.name} (hid): profile={profile} but the report descriptor"
+                                  f" ({source}) describes {', '.join(layout.classes) or 'no mouse, pen or touch'}",
+                                  source=self.name)
+            return (profile,)
+        if not layout.classes:
+            raise ConfigError(f"device {self.name} (hid): the report descriptor ({source}) describes no mouse, pen"
+                              " or touch surface (applications: "
+                              + ", ".join(f"0x{a:08x}" for a in layout.applications) + ")", source=self.name)
+        return layout.classes
+
+    def declare_streams(self) -> list[StreamInfo]:
+        data, source = self._initial_descriptor()
+        layout = parse_descriptor(data, f"device {self.name} (hid): {source}")
+        return self._use_layout(layout, source)
+
+    def _use_layout(self, layout: DescriptorLayout, source: str) -> list[StreamInfo]:
+        classes = self._classes(layout, source)
+        self.layout = layout
+        self.codec.set_layout(layout)
+        self._multiplier = layout.wheel_multiplier()
+        streams: list[StreamInfo] = []
+        self._plans: dict[int | None, list[Plan]] = {}
+        for cls in classes:
+            rate = self.opts["rate"] or DEFAULT_RATES[cls]
+            getattr(self, f"_declare_{cls}")(layout, streams, rate)
+        return streams
+
+    # -- mouse ---------------------------------------------------------------------------------------
+    def _declare_mouse(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float) -> None:
+        reports = [r for r in layout.reports.values() if any(f.application in MOUSE_APPS for f in r.fields)]
+        nbuttons = 0
+        for r in reports:
+            for f in r.fields:
+                if f.application in MOUSE_APPS and f.usage_page == BUTTON_PAGE:
+                    nbuttons = max([nbuttons, *((u & 0xFFFF) for u in (f.usages if f.is_array else (f.usage,)))])
+        mult = self._multiplier
+        si = len(streams)
+        streams.append(self.stream_info("pointer", "pointer", ("dx", "dy", "wheel", "hwheel"),
+                                        ("count", "count", "detent", "detent"), rate,
+                                        quantum=(1.0, 1.0, 1.0 / mult, 1.0 / mult)))
+        bi = len(streams)
+        streams.append(self.stream_info("buttons", "buttons", tuple(f"b{i}" for i in range(1, nbuttons + 1)),
+                                        ("1",) * nbuttons, rate, quantum=(1.0,) * nbuttons))
+        multiplied = {f.collection for _, f in layout.multipliers}
+        for r in reports:
+            mf = [f for f in r.fields if f.application in MOUSE_APPS]
+            ix, iy, iw, ih = (_idx(mf, u) for u in (GD_X, GD_Y, GD_WHEEL, AC_PAN))
+            if ix is None and iy is None and iw is None and ih is None and not any(
+                    f.usage_page == BUTTON_PAGE for f in mf):
+                continue
+            wdiv = {i: (mult if r.fields[i].collection in multiplied else 1.0) for i in (iw, ih) if i is not None}
+            bvars = [(f.index, (f.usage & 0xFFFF) - 1) for f in mf
+                     if f.usage_page == BUTTON_PAGE and not f.is_array]
+            barrs = [(f.index, f.usages, f.logical_min) for f in mf if f.usage_page == BUTTON_PAGE and f.is_array]
+            self._plans.setdefault(r.report_id, []).append(
+                self._mouse_plan(si, bi, nbuttons, ix, iy, iw, ih, wdiv, bvars, barrs))
+
+    def _mouse_plan(self, si: int, bi: int, nb: int, ix: int | None, iy: int | None, iw: int | None,
+                    ih: int | None, wdiv: dict[int, float], bvars: list[tuple[int, int]],
+                    barrs: list[tuple[int, tuple[int, ...], int]]) -> Plan:
+        def plan(v: list[Any]) -> list[Reading]:
+            ptr = (float(v[ix]) if ix is not None else 0.0, float(v[iy]) if iy is not None else 0.0,
+                   v[iw] / wdiv[iw] if iw is not None else 0.0, v[ih] / wdiv[ih] if ih is not None else 0.0)
+            out = [Reading(si, ptr)]
+            if nb:
+                b = [0.0] * nb
+                for i, n in bvars:
+                    if v[i]:
+                        b[n] = 1.0
+                for i, usages, lmin in barrs:
+                    for x in v[i]:
+                        k = x - lmin
+                        if 0 <= k < len(usages) and 0 < (usages[k] & 0xFFFF) <= nb:
+                            b[(usages[k] & 0xFFFF) - 1] = 1.0
+                out.append(Reading(bi, tuple(b)))
+            return out
+        return plan
+
+    # -- pen -----------------------------------------------------------------------------------------
+    def _declare_pen(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float) -> None:
+        si = len(streams)
+        unit_xy = "1"
+        plans: list[tuple[int | None, Plan]] = []
+        for r in layout.reports.values():
+            pf = [f for f in r.fields if f.application in PEN_APPS or f.application == DIG_DIGITIZER]
+            ix = _idx(pf, GD_X)
+            if ix is None:
+                continue
+            f = r.fields[ix]
+            if f.unit == "m":
+                unit_xy = "m"
+            plans.append((r.report_id, self._pen_plan(si, r, pf)))
+        streams.append(self.stream_info(
+            "pen", "pen", ("x", "y", "pressure", "tilt_x", "tilt_y", "in_range", "tip", "barrel", "eraser"),
+            (unit_xy, unit_xy, "1", "deg", "deg", "1", "1", "1", "1"), rate))
+        for rid, p in plans:
+            self._plans.setdefault(rid, []).append(p)
+
+    def _pen_plan(self, si: int, r: ReportLayout, pf: list[FieldLayout]) -> Plan:
+        F = r.fields
+
+        def conv(usage: int, how: str) -> Callable[[list[Any]], float]:
+            i = _idx(pf, usage)
+            if i is None:
+                return lambda v: NAN
+            f = F[i]
+            if how == "pos" and f.unit != "m" or how == "norm":
+                return lambda v: f.normalised(v[i])
+            if how == "bool":
+                return lambda v: 1.0 if v[i] else 0.0
+            return lambda v: f.physical(v[i])
+
+        eraser = DIG_ERASER if _idx(pf, DIG_ERASER) is not None else DIG_INVERT
+        convs = [conv(GD_X, "pos"), conv(GD_Y, "pos"), conv(DIG_TIP_PRESSURE, "norm"), conv(DIG_X_TILT, "phys"),
+                 conv(DIG_Y_TILT, "phys"), conv(DIG_IN_RANGE, "bool"), conv(DIG_TIP_SWITCH, "bool"),
+                 conv(DIG_BARREL, "bool"), conv(eraser, "bool")]
+
+        def plan(v: list[Any]) -> list[Reading]:
+            return [Reading(si, tuple(c(v) for c in convs))]
+        return plan
+
+    # -- touch ---------------------------------------------------------------------------------------
+    def _declare_touch(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float) -> None:
+        si = len(streams)
+        unit_xy = "1"
+        for r in layout.reports.values():
+            tf = [f for f in r.fields if f.application in TOUCH_APPS]
+            groups: dict[tuple[int, int, int], list[FieldLayout]] = {}
+            for f in tf:
+                if f.usage in (DIG_TIP_SWITCH, DIG_CONTACT_ID, GD_X, GD_Y, DIG_WIDTH, DIG_HEIGHT):
+                    groups.setdefault(f.collection, []).append(f)
+            contacts = [g for g in groups.values() if _idx(g, GD_X) is not None]
+            if not contacts:
+                continue
+            if any(r.fields[_idx(g, GD_X)].unit == "m" for g in contacts):  # type: ignore[index]
+                unit_xy = "m"
+            icount = _idx(tf, DIG_CONTACT_COUNT)
+            self._plans.setdefault(r.report_id, []).append(self._touch_plan(si, r, contacts, icount))
+        self._touch_left = 0
+        streams.append(self.stream_info("touch", "touch", ("contact_id", "tip", "x", "y", "width", "height",
+                                                           "contact_count"),
+                                        ("1", "1", unit_xy, unit_xy, unit_xy, unit_xy, "1"), rate))
+
+    def _touch_plan(self, si: int, r: ReportLayout, contacts: list[list[FieldLayout]], icount: int | None) -> Plan:
+        F = r.fields
+        slots = []
+        for g in contacts:
+            def get(usage: int, g: list[FieldLayout] = g) -> tuple[int, FieldLayout] | None:
+                i = _idx(g, usage)
+                return None if i is None else (i, F[i])
+            slots.append(tuple(get(u) for u in (DIG_CONTACT_ID, DIG_TIP_SWITCH, GD_X, GD_Y, DIG_WIDTH, DIG_HEIGHT)))
+        nslots = len(slots)
+
+        def val(v: list[Any], spec: tuple[int, FieldLayout] | None, pos: bool) -> float:
+            if spec is None:
+                return NAN
+            i, f = spec
+            if not pos:
+                return float(v[i])
+            return f.physical(v[i]) if f.unit == "m" else f.normalised(v[i])
+
+        def plan(v: list[Any]) -> list[Reading]:
+            if icount is not None:
+                cc = v[icount]
+                if cc > 0:
+                    self._touch_left = cc
+                n = min(self._touch_left, nslots)
+                self._touch_left -= n
+                total = float(cc if cc > 0 else n)
+                use = slots[:n]
+            else:
+                use = [s for s in slots if s[1] is None or v[s[1][0]]]
+                total = float(len(use))
+            return [Reading(si, (val(v, s[0], False), 1.0 if s[1] is None else float(bool(v[s[1][0]])),
+                                 val(v, s[2], True), val(v, s[3], True), val(v, s[4], True), val(v, s[5], True),
+                                 total)) for s in use]
+        return plan
+
+    # -- life cycle ----------------------------------------------------------------------------------
+    def handshake(self) -> None:
+        rd = self.hid_report_descriptor()
+        if rd != self.layout.rdesc:
+            new = parse_descriptor(rd, f"device {self.name} (hid): {self.transport.url}")
+            old = [(s.name, s.channels, s.units) for s in self.streams]
+            keep_layout, keep_plans, keep_mult = self.layout, self._plans, self._multiplier
+            streams = self._use_layout(new, self.transport.url)
+            if [(s.name, s.channels, s.units) for s in streams] != old:
+                self.layout, self._plans, self._multiplier = keep_layout, keep_plans, keep_mult
+                self.codec.set_layout(keep_layout)
+                raise DeviceInitError(
+                    f"device {self.name} (hid): its report descriptor gives other streams than were declared"
+                    f" before open ({[s.channels for s in streams]} vs {[c for _, c, _ in old]}); pass its"
+                    f" descriptor as rdesc={rd.hex()}", source=self.transport.url)
+        for data in self.layout.multiplier_reports():
+            try:
+                self.hid_set_feature(data)
+            except CaptureError as exc:
+                log.warning("device %s (hid): cannot set the wheel resolution multiplier (%s); wheel values"
+                            " may be %g times too small", self.name, exc, self._multiplier)
+
+    def frame_to_readings(self, frame: Any) -> Iterable[Reading]:
+        rep, values = frame
+        out: list[Reading] = []
+        for plan in self._plans.get(rep.report_id, ()):
+            out += plan(values)
+        return out
