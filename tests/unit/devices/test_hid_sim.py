@@ -100,3 +100,18 @@ def test_a_device_that_is_not_there_at_open_is_not_found():
     t.close()
     with pytest.raises(DeviceNotFoundError):
         t.open()
+
+
+@pytest.mark.parametrize("url", ["pad=simhid://dualsense?realtime=false&duration=2&bus=bluetooth",
+                                 "pad=simhid://switchpro?realtime=false&duration=2",
+                                 "pad=simhid://ds4?realtime=false&duration=2"])
+def test_controller_imu_streams_feed_orientation_fusion(url, tmp_path):
+    out = str(tmp_path / "o.mcap")
+    cap = Capture([url], output=out)
+    assert cap.enable_orientation("fusion", auto_bias=False) is not None
+    cap.run(None)
+    r = SessionReader(out)
+    imu, q, g = r.samples("pad/imu"), r.samples("pad/orientation"), r.samples("pad/gravity")
+    assert len(q) == len(imu) > 100 and np.array_equal(q.t_bus_ns, imu.t_bus_ns)
+    assert np.allclose(np.linalg.norm(q.values, axis=1), 1.0, atol=1e-6)
+    assert np.allclose(np.linalg.norm(g.values, axis=1), 9.80665, atol=1e-3)
