@@ -76,6 +76,11 @@ def _live_line(cap: Any, elapsed: float) -> None:
     parts = []
     for name, s in cap.stats.snapshot().items():
         parts.append(f"{name} {s['samples']} @ {s['rate_hz']:.0f} Hz" + (f" ({s['drops']} lost)" if s["drops"] else ""))
+    for d in cap.devices:
+        if d.state.value in ("opening", "reconnecting", "closed") and not d.stats.chunks:
+            parts.append(f"{d.name}: waiting for the device")
+        elif d.state.value == "reconnecting":
+            parts.append(f"{d.name}: reconnecting")
     print(f"[{elapsed:6.1f} s] " + "; ".join(parts), file=sys.stderr, flush=True)
 
 
@@ -161,6 +166,12 @@ def _print_capture(report: Any, as_json: bool) -> int:
     failed = [n for n, d in report.devices.items() if d["state"] == "failed"]
     if failed:
         print(f"perfcap: error: device(s) failed: {', '.join(failed)} (see the messages above)", file=sys.stderr)
+        return EXIT_CHECK_FAILED
+    never = [n for n, d in report.devices.items() if not d.get("opens", 1)]
+    if never:
+        for n in never:
+            print(f"perfcap: error: device {n} was never opened during the take: {report.devices[n]['last_error']}",
+                  file=sys.stderr)
         return EXIT_CHECK_FAILED
     return 0
 

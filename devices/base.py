@@ -102,6 +102,10 @@ class Device(abc.ABC):
         self.codec = self.codec_cls(strict=strict)
         self.state = DeviceState.CLOSED
         self.stats = DeviceStats()
+        #: successful opens (handshake done); 0 at the end of a take means the device never came
+        self.opens = 0
+        #: why the last open attempt failed, for reports
+        self.last_error: str | None = None
         hint = {k: v for k, v in transport.identity_hint().items() if v is not None}
         self.identity = DeviceIdentity(kind=self.kind, name=name, url=transport.url, **hint)
         self.streams: list[StreamInfo] = self.declare_streams()
@@ -151,6 +155,7 @@ class Device(abc.ABC):
         self.transport.open()
         self.handshake()
         self.state = DeviceState.STREAMING
+        self.opens += 1
         self._pending.append(DeviceEvent(self.name, EventKind.OPENED, self.clock.now_ns(), self.transport.url))
         out, self._pending = self._pending, []
         return out
@@ -529,7 +534,8 @@ class Device(abc.ABC):
     def health(self) -> dict[str, Any]:
         """Counters for status displays and session summaries."""
         return {"state": self.state.value, **self.stats.__dict__, **self.codec.stats.as_dict(),
-                "clock_resets": sum(s.resets for s in self._domains)}
+                "clock_resets": sum(s.resets for s in self._domains), "opens": self.opens,
+                "last_error": self.last_error}
 
 
 class StreamReadings(NamedTuple):
@@ -647,9 +653,13 @@ class DeviceReader:
         dev = self.device
         pol = self.policy
         t_lost = dev.clock.now_ns()
+        dev.last_error = str(exc)
         if not first:
             log.warning("device %s lost: %s", dev.name, exc)
             self._event(EventKind.DISCONNECTED, str(exc))
+        elif pol.enabled:
+            log.warning("device %s cannot be opened: %s; waiting for it (it is opened as soon as it appears)",
+                        dev.name, exc)
         if not pol.enabled:
             if first:
                 raise exc
@@ -679,7 +689,9 @@ class DeviceReader:
                     self.error = again
                     self._event(EventKind.FAILED, f"gave up after {elapsed:.1f} s: {again}")
                     return False
-                log.debug("device %s still away: %s", dev.name, again)
+                if str(again) != dev.last_error:  # a new reason is news; the same one again is not
+                    log.warning("device %s still cannot be opened: %s", dev.name, again)
+                dev.last_error = str(again)
                 delay = min(pol.max_s, delay * pol.factor)
                 continue
             dropped = dev.reset_after_reconnect()

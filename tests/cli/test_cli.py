@@ -164,3 +164,14 @@ def test_console_script_and_demo_run_without_shared(tmp_path):
                         capture_output=True, text=True, timeout=60)
     s = json.loads(p2.stdout)
     assert {x["device"] for x in s["streams"]} == {"wrist", "ankle", "head", "hand", "pad", "pen"}  # hand: pty serial IMU; pad, pen: simulated HID
+
+
+def test_a_device_that_never_opens_is_reported_and_fails_the_take(capsys, tmp_path):
+    """An absent controller: the reason is logged while perfcap waits for it, and the take ends
+    with an error naming the device and the reason (not an empty recording and exit 0)."""
+    out = str(tmp_path / "t.mcap")
+    code = main(["record", "-d", "pad=simhid://dualsense?handshake=silent&init_timeout=0.2", "-o", out,
+                 "--duration", "1"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "device pad was never opened during the take" in err and "calibration feature report" in err
