@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
 
-from devices.transports.hid import KNOWN_HID, HidDeviceInfo, known_hid, list_hid_devices
+from devices.transports.hid import KNOWN_HID, HidDeviceInfo, hid_backend, known_hid, list_hid_devices
 from devices.transports.serialport import known_adapter, list_serial_ports
 
 RULES_NAME = "70-perfcap.rules"
@@ -101,7 +101,9 @@ def diagnose() -> Report:
     rep = Report()
     rep.usb, usb_note = _usb_devices()
     if usb_note:
-        rep.notes.append(usb_note)
+        rep.notes.append(usb_note + "; the USB listing is only a cross-check: HID and serial devices are listed"
+                         " without it")
+    rep.notes.append(f"hidapi backend: {hid_backend()}")
     try:
         hids = list_hid_devices()
     except Exception as exc:

@@ -133,6 +133,8 @@ class SimHidTransport(Transport, HidTransportBase):
                             min=0.0),
         "unplug_for": Option(float, 1.0, "and comes back after this many seconds", min=0.0),
         "truth": Option(bool, False, "keep the true time and the scheduled arrival of every streamed report (tests)"),
+        "buffer": Option(int, 64, "reports the OS keeps for a reader that falls behind (Linux hidraw: 64); older"
+                         " ones are lost and counted", min=1, max=1 << 20),
     }
 
     @classmethod
@@ -163,6 +165,10 @@ class SimHidTransport(Transport, HidTransportBase):
         self.truth_ns: list[int] = []
         self.arrival_ns: list[int] = []
         self.opens = 0
+        #: streamed reports: sent by the device (delivered or lost), and lost in an overflowing buffer
+        self.sent = 0
+        self.dropped = 0
+        self._due: collections.deque[tuple[int, int, bytes]] = collections.deque()
 
     # -- identity -------------------------------------------------------------------------------------
     def implied_kind(self) -> str | None:
@@ -201,6 +207,7 @@ class SimHidTransport(Transport, HidTransportBase):
         self._last_arrival = now
         self._it = self.responder.stream()
         self._next = None
+        self._due.clear()
         self._open = True
         self.opens += 1
 
@@ -231,6 +238,8 @@ class SimHidTransport(Transport, HidTransportBase):
         return true, max(t, self._last_arrival)  # a USB pipe keeps order
 
     def _peek(self) -> tuple[int, int, bytes] | None:
+        if self._next is None and self._due:
+            self._next = self._due.popleft()
         if self._next is None and self._it is not None:
             try:
                 t_dev, rep = next(self._it)
@@ -263,6 +272,9 @@ class SimHidTransport(Transport, HidTransportBase):
             return None
         true, t, data = nxt
         if self.opts["realtime"]:
+            if t <= now:
+                self._overflow(now)
+                true, t, data = self._next  # type: ignore[misc]
             deadline = now + int(timeout * 1e9)
             if t > deadline:
                 self.clock.sleep_until_ns(deadline)
@@ -274,10 +286,36 @@ class SimHidTransport(Transport, HidTransportBase):
             stamp = t
         self._next = None
         self._last_arrival = t
+        self.sent += 1
         if self.opts["truth"]:
             self.truth_ns.append(true)
             self.arrival_ns.append(t)
         return Chunk(data, stamp)
+
+    def _overflow(self, now: int) -> None:
+        """A reader that fell behind: the OS keeps only the newest ``buffer`` reports that have
+        arrived (Linux hidraw: 64 per reader); older ones are lost, as on a real device, and counted."""
+        due: list[tuple[int, int, bytes]] = []
+        later = None
+        while True:
+            nxt = self._peek()
+            self._next = None
+            if nxt is None:
+                break
+            if nxt[1] > now:
+                later = nxt
+                break
+            due.append(nxt)
+        keep = self.opts["buffer"]
+        if len(due) > keep:
+            lost = len(due) - keep
+            self.dropped += lost
+            self.sent += lost
+            due = due[lost:]
+        self._due.extend(due)
+        if later is not None:
+            self._due.append(later)
+        self._next = self._due.popleft() if self._due else None
 
     def write(self, data: bytes) -> Chunk:
         self._check()
@@ -300,7 +338,9 @@ class SimHidTransport(Transport, HidTransportBase):
         return bytes(rep[:length])
 
     def report_descriptor(self) -> bytes:
-        self._check()
+        """Readable before open, as a live device's is (sysfs, or a brief open); not while unplugged."""
+        if self._unplugged(self._now()):
+            raise DeviceNotFoundError(f"{self.url}: no such HID device (simulated unplug)", source=self.url)
         return self.responder.report_descriptor()
 
     def stamp_tx(self, data: bytes) -> Chunk:

@@ -74,8 +74,8 @@ def _unit(unit_value: int, exponent: int) -> tuple[str, float]:
         return "", 1.0
     try:
         u = hh.HidUnit.from_value(unit_value)
-    except (ValueError, AssertionError, KeyError):
-        return f"unit 0x{unit_value:x}", 10.0 ** exponent
+    except Exception:  # noqa: BLE001 - hid-tools chokes on some codes (after Push it can pass negatives)
+        return f"unit 0x{unit_value & 0xFFFFFFFF:x}", 10.0 ** exponent
     if u is None:
         return "", 1.0
     pow10 = 10.0 ** exponent
@@ -296,13 +296,17 @@ def parse_descriptor(rdesc: bytes, source: str = "report descriptor") -> Descrip
     if not rd.input_reports:
         raise ConfigError(f"{source}: the HID report descriptor declares no input report", source=source)
     reports: dict[int | None, ReportLayout] = {}
-    for rep in rd.input_reports.values():
-        lay = _layout_of(rep, with_id=True)
-        reports[lay.report_id] = lay
     multipliers: list[tuple[ReportLayout, FieldLayout]] = []
-    for rep in rd.feature_reports.values():
-        lay = _layout_of(rep, with_id=True)
-        multipliers += [(lay, f) for f in lay.fields if f.usage == GD_RES_MULTIPLIER]
+    try:
+        for rep in rd.input_reports.values():
+            lay = _layout_of(rep, with_id=True)
+            reports[lay.report_id] = lay
+        for rep in rd.feature_reports.values():
+            lay = _layout_of(rep, with_id=True)
+            multipliers += [(lay, f) for f in lay.fields if f.usage == GD_RES_MULTIPLIER]
+    except Exception as exc:  # noqa: BLE001 - what hid-tools parsed but cannot lay out is a bad descriptor too
+        raise ConfigError(f"{source}: the HID report descriptor ({len(data)} bytes) cannot be laid out:"
+                          f" {type(exc).__name__}: {exc}", source=source) from exc
     apps = tuple(dict.fromkeys(r.application for r in reports.values()))
     return DescriptorLayout(data, reports, apps, classify(reports.values()), multipliers)
 

@@ -58,6 +58,7 @@ from devices.hid.descriptor import (
     parse_descriptor,
 )
 from devices.options import Option
+from devices.transports.hid import HidTransportBase
 
 log = logging.getLogger(__name__)
 
@@ -98,15 +99,13 @@ class GenericHid(HidDevice):
                 raise ConfigError(f"device {self.name} (hid): option rdesc is not hex bytes", source=self.name) \
                     from None
         t = self.transport
-        responder = getattr(t, "responder", None)
-        for ask in (getattr(responder, "report_descriptor", None), getattr(t, "report_descriptor", None)):
-            if ask is None:
-                continue
+        if isinstance(t, HidTransportBase):  # live devices, simulators and replays all give it before open
             try:
-                data = bytes(ask())
-            except (CaptureError, OSError, NotImplementedError, AttributeError) as exc:
-                log.debug("device %s: report descriptor not available before open: %s", self.name, exc)
-                continue
+                data = bytes(t.report_descriptor())
+            except CaptureError as exc:
+                log.info("device %s: report descriptor not available before open (%s); using the profile",
+                         self.name, exc)
+                data = b""
             if data:
                 return data, f"{t.url}"
         profile = self.opts["profile"]

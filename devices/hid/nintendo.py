@@ -157,22 +157,33 @@ class _SwitchBase(HidDevice):
         timeout = self.opts["reply_timeout"]
         tries = self.opts["retries"] + 1
         codec = SwitchCodec()
+        others: list[int] = []  # replies to other subcommands (late answers to an earlier send): skipped
+
+        def ours(d: bytes) -> bool:
+            if len(d) < 15 or d[0] != sw.IN_SUBCMD_REPLY:
+                return False
+            if d[14] != sc:
+                others.append(d[14])
+                return False
+            return True
+
         for attempt in range(tries):
             self.hid_output(sw.subcommand_report(self._counter, sc, args))
             self._counter = (self._counter + 1) & 0x0F
             try:
-                raw = self.hid_wait_for(lambda d: len(d) >= 15 and d[0] == sw.IN_SUBCMD_REPLY, timeout,
-                                        f"subcommand {what}")
+                raw = self.hid_wait_for(ours, timeout, f"subcommand {what}")
             except DeviceTimeoutError as exc:
-                if attempt == tries - 1:
-                    raise DeviceTimeoutError(f"{exc} (sent {tries} time(s))", source=self.transport.url) from None
-                log.info("device %s: no reply to subcommand %s, sending it again", self.name, what)
-                continue
+                if attempt < tries - 1:
+                    log.info("device %s: no reply to subcommand %s, sending it again", self.name, what)
+                    continue
+                if others:
+                    raise DeviceInitError(
+                        f"device {self.name} ({self.kind}): subcommand {what} was only ever answered with replies to"
+                        f" other subcommands ({', '.join(f'0x{x:02x}' for x in sorted(set(others)))}), sent {tries}"
+                        " time(s)", source=self.transport.url) from None
+                raise DeviceTimeoutError(f"{exc} (sent {tries} time(s))", source=self.transport.url) from None
             rep = codec.feed(raw)[0]
             assert isinstance(rep, SubcommandReply)
-            if rep.subcommand != sc:
-                raise DeviceInitError(f"device {self.name} ({self.kind}): subcommand {what} was answered with a reply to"
-                                      f" subcommand 0x{rep.subcommand:02x}", source=self.transport.url)
             if not rep.acked:
                 if attempt == tries - 1:
                     raise DeviceInitError(f"device {self.name} ({self.kind}): subcommand {what} was refused (NACK, "

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import abc
 import errno
+import importlib
 import os
 import re
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -146,9 +148,11 @@ class HidDeviceInfo:
 
     @property
     def url(self) -> str:
-        if self.serial_number:
-            return f"hid://{self.vid_pid}:{self.serial_number}"
-        return f"hid://{self.vid_pid}"
+        base = f"hid://{self.vid_pid}:{self.serial_number}" if self.serial_number else f"hid://{self.vid_pid}"
+        if known_hid(self.vid, self.pid) is None and self.usage_page:
+            # a mouse or tablet is often one of several interfaces of its USB device: name this one
+            return f"{base}?usage_page={self.usage_page}&usage={self.usage}"
+        return base
 
     def as_dict(self) -> dict[str, Any]:
         k = known_hid(self.vid, self.pid)
@@ -160,11 +164,26 @@ class HidDeviceInfo:
 
 
 def _hid_module() -> Any:
+    """hidapi's backend: on Linux its ``hidraw`` module (the kernel's hidraw nodes: Bluetooth devices
+    are listed, and a mouse or tablet keeps working on the desktop while perfcap reads it), elsewhere
+    ``hid``. The ``hid`` module of the Linux wheel goes through libusb, which sees no Bluetooth device
+    and detaches the kernel driver of what it opens."""
+    names = ("hidraw", "hid") if sys.platform.startswith("linux") else ("hid",)
+    errors = []
+    for name in names:
+        try:
+            return importlib.import_module(name)
+        except ImportError as exc:
+            errors.append(f"{name}: {exc}")
+    raise DeviceUnavailableError(f"the hidapi package cannot be loaded ({'; '.join(errors)}); reinstall perfcap")
+
+
+def hid_backend() -> str:
+    """Which hidapi backend perfcap uses here (for perfcap doctor)."""
     try:
-        import hid
-    except ImportError as exc:  # the hidapi wheel is a dependency; a broken install says so
-        raise DeviceUnavailableError(f"the hidapi package cannot be loaded ({exc}); reinstall perfcap") from exc
-    return hid
+        return str(_hid_module().__name__)
+    except DeviceUnavailableError as exc:
+        return f"none ({exc})"
 
 
 def list_hid_devices() -> list[HidDeviceInfo]:
@@ -395,10 +414,22 @@ class HidTransport(Transport, HidTransportBase):
             blob = _hidraw_descriptor(info.path)
             if blob:
                 return blob
-        if self._dev is None:
-            raise DeviceIOError(f"{self.url}: the report descriptor is read after opening", source=self.url)
+        dev, opened_here = self._dev, False
+        if dev is None:  # before open (a generic device declares its streams from it): open briefly
+            if info is None:
+                raise DeviceNotFoundError(f"no HID device {self.address} is connected, so its report descriptor"
+                                          " cannot be read", source=self.url)
+            dev = _hid_module().device()
+            try:
+                dev.open_path(info.path.encode())
+            except OSError as exc:
+                raise self._open_error(info, exc) from exc
+            opened_here = True
         try:
-            return bytes(self._dev.get_report_descriptor())
+            return bytes(dev.get_report_descriptor())
         except (OSError, ValueError, AttributeError) as exc:
             raise DeviceIOError(f"{self.url}: the report descriptor could not be read ({exc})",
                                 source=self.url) from exc
+        finally:
+            if opened_here:
+                dev.close()

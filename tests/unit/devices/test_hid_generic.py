@@ -308,3 +308,37 @@ def test_handshake_rejects_a_descriptor_that_changes_the_declared_streams() -> N
             dev.open()  # the simulated pen's own descriptor gives a pen stream, not the declared mouse
     finally:
         dev.close()
+
+
+PUSH_POP_MOUSE = bytes([
+    0x05, 0x01, 0x09, 0x02, 0xA1, 0x01, 0x09, 0x01, 0xA1, 0x00,
+    0xA4,                    # Push
+    0x66, 0x11, 0x00,        # Unit: cm
+    0x55, 0x0E,              # Unit exponent -2
+    0x05, 0x01, 0x09, 0x30, 0x09, 0x31, 0x15, 0x81, 0x25, 0x7F, 0x75, 0x08, 0x95, 0x02, 0x81, 0x06,
+    0xB4,                    # Pop
+    0x05, 0x09, 0x19, 0x01, 0x29, 0x03, 0x15, 0x00, 0x25, 0x01, 0x75, 0x01, 0x95, 0x03, 0x81, 0x02,
+    0x75, 0x05, 0x95, 0x01, 0x81, 0x03,
+    0xC0, 0xC0])
+
+
+def test_a_descriptor_with_push_and_pop_is_laid_out():
+    """hid-tools mishandles units around Push/Pop; the layout still comes out (X/Y in metres from the
+    pushed unit, buttons unitless) instead of an internal error."""
+    from devices.hid.descriptor import parse_descriptor
+
+    lay = parse_descriptor(PUSH_POP_MOUSE, "push/pop mouse")
+    fields = {f.name: f for r in lay.reports.values() for f in r.fields}
+    assert fields["X"].unit == "m" and fields["Y"].unit == "m"
+    assert "mouse" in lay.classes
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(min_size=1, max_size=120))
+def test_any_bytes_as_a_descriptor_give_a_layout_or_a_config_error(blob):
+    from devices.hid.descriptor import parse_descriptor
+
+    try:
+        parse_descriptor(blob, "fuzz")
+    except ConfigError:
+        pass

@@ -115,3 +115,20 @@ def test_controller_imu_streams_feed_orientation_fusion(url, tmp_path):
     assert len(q) == len(imu) > 100 and np.array_equal(q.t_bus_ns, imu.t_bus_ns)
     assert np.allclose(np.linalg.norm(q.values, axis=1), 1.0, atol=1e-6)
     assert np.allclose(np.linalg.norm(g.values, axis=1), 9.80665, atol=1e-3)
+
+
+def test_a_reader_that_falls_behind_loses_the_oldest_reports_beyond_the_os_buffer_and_counts_them():
+    import time
+
+    t = SimHidTransport("mouse", {"buffer": 10, "truth": True})
+    t.open()
+    assert t.read(0.5) is not None
+    time.sleep(0.1)  # the reader is away for about 100 reports at 1 kHz
+    got = [t.read(0.0) for _ in range(10)]
+    assert all(c is not None for c in got)
+    assert 60 <= t.dropped <= 120, t.dropped
+    assert t.sent == len(t.arrival_ns) + t.dropped
+    # the ten kept are the newest, in order, each stamped when it was read (not when it arrived)
+    assert np.all(np.diff([c.t_ns for c in got]) >= 0)
+    assert got[0].t_ns >= t.arrival_ns[1]
+    t.close()

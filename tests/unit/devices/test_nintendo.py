@@ -296,7 +296,7 @@ def test_silent_controller_times_out_bounded(bus):
     assert time.monotonic() - t0 < 1.0  # 2 attempts x 0.1 s
 
 
-@pytest.mark.parametrize("mode,match", [("wrong", r"answered with a reply to subcommand 0x03"),
+@pytest.mark.parametrize("mode,match", [("wrong", r"only ever answered with replies to other subcommands \(0x03\)"),
                                         ("wrong_spi", r"SPI read of factory IMU calibration at 0x6020 .* 0x6030"),
                                         ("nack", r"device info \(0x02\) was refused \(NACK")])
 def test_wrong_answers_are_named(mode, match):
@@ -304,7 +304,8 @@ def test_wrong_answers_are_named(mode, match):
     t0 = time.monotonic()
     with pytest.raises(DeviceInitError, match=match):
         dev.open()
-    assert time.monotonic() - t0 < 1.0
+    # bounded: a wrong reply is skipped while the right one may still come, for at most the retries
+    assert time.monotonic() - t0 < 2.5
 
 
 def test_blank_calibration_falls_back_to_nominal_with_warnings(caplog):
