@@ -26,14 +26,22 @@ import logging
 import os
 import socket
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, BinaryIO
-from collections.abc import Iterator
 
 import numpy as np
 
 from capture.errors import SessionError, SessionExistsError
-from capture.sample import NO_TIME, Chunk, ChunkRun, ClockState, DeviceEvent, SampleBatch, StreamInfo
+from capture.sample import (
+    NO_TIME,
+    Chunk,
+    ChunkRun,
+    ClockState,
+    DeviceEvent,
+    SampleBatch,
+    StreamInfo,
+)
 
 log = logging.getLogger(__name__)
 
@@ -231,6 +239,9 @@ class DeviceRecord:
     identity: dict[str, Any]
     streams: list[str]
     descriptors: dict[str, bytes] = field(default_factory=dict)
+    #: every version of each descriptor in recording order (a device that reconnects over another
+    #: bus, or re-reads its calibration, adds one per open); ``descriptors`` holds the latest
+    history: dict[str, list[bytes]] = field(default_factory=dict)
 
 
 class SessionWriter:
@@ -264,8 +275,9 @@ class SessionWriter:
             raise SessionError(f"cannot create {path}: {exc.strerror or exc}", path=path) from exc
         self._w = Writer(self._f, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._w.start(profile="perfcap", library="perfcap")
-        from capture import __version__
         import time as _t
+
+        from capture import __version__
         m = {"format_version": FORMAT_VERSION, "perfcap_version": __version__, "host": socket.gethostname(),
              "start_wall_time_s": repr(wall_time_s if wall_time_s is not None else _t.time())}
         m.update(meta or {})
@@ -533,6 +545,7 @@ class SessionReader:
                         dev, _, key = rec.name.partition("/")
                         if dev in scan.devices:
                             scan.devices[dev].descriptors[key] = rec.data
+                            scan.devices[dev].history.setdefault(key, []).append(rec.data)
         finally:
             f.close()
 

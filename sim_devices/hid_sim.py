@@ -88,6 +88,9 @@ class HidResponder(abc.ABC):
     def output(self, data: bytes) -> None:
         """An output report written by the host (its ID first); answer with ``reply``."""
 
+    def on_open(self) -> None:
+        """The host opened the device (again); ``bus`` may have changed (a replug over Bluetooth)."""
+
     def reply(self, report: bytes) -> None:
         """Queue an input report that answers the host; delivered before the next streamed one."""
         self._replies.append(bytes(report))
@@ -133,6 +136,8 @@ class SimHidTransport(Transport, HidTransportBase):
                             min=0.0),
         "unplug_for": Option(float, 1.0, "and comes back after this many seconds", min=0.0),
         "truth": Option(bool, False, "keep the true time and the scheduled arrival of every streamed report (tests)"),
+        "replug_bus": Option(str, "", "after an unplug the device comes back on this bus (usb|bluetooth;"
+                             " empty: the same)", choices=("", "usb", "bluetooth")),
         "buffer": Option(int, 64, "reports the OS keeps for a reader that falls behind (Linux hidraw: 64); older"
                          " ones are lost and counted", min=1, max=1 << 20),
     }
@@ -203,6 +208,9 @@ class SimHidTransport(Transport, HidTransportBase):
             self._t_first_open = now
         elif self._unplugged(now):
             raise DeviceNotFoundError(f"{self.url}: no such HID device (simulated unplug)", source=self.url)
+        if self.opens and self.opts["replug_bus"]:
+            self.bus = self.responder.bus = self.opts["replug_bus"]
+        self.responder.on_open()
         self._t0 = now
         self._last_arrival = now
         self._it = self.responder.stream()

@@ -69,6 +69,7 @@ class ReplayTransport(Transport, HidTransportBase):
         self._i = 0
         self._pass = 0
         self.tx_mismatches = 0
+        self.opens = 0
         self._timeline: tuple[int, int] | None = None
         self.lateness_ns: deque[int] = deque(maxlen=200_000)
 
@@ -91,6 +92,7 @@ class ReplayTransport(Transport, HidTransportBase):
         return self._open
 
     def open(self) -> None:
+        self.opens += 1
         if self._chunks is None:
             run = self.session.raw_run(self.record.name)
             self._chunks = run
@@ -123,12 +125,20 @@ class ReplayTransport(Transport, HidTransportBase):
         return int(self._rx_t[self._i]) + self._pass * self._span
 
     # -- HID handshake calls, answered from the recording -------------------------------------------
+    def _descriptor(self, key: str) -> bytes | None:
+        """The version of a descriptor that the current open recorded (the n-th open read the n-th
+        version; a device that reconnected over Bluetooth after USB has one of each)."""
+        versions = self.record.history.get(key)
+        if not versions:
+            return self.record.descriptors.get(key)
+        return versions[min(max(self.opens - 1, 0), len(versions) - 1)]
+
     @property
     def bus(self) -> str:  # type: ignore[override]
-        return self.record.descriptors.get("hid.bus", b"unknown").decode(errors="replace")
+        return (self._descriptor("hid.bus") or b"unknown").decode(errors="replace")
 
     def get_feature_report(self, report_id: int, length: int) -> bytes:
-        blob = self.record.descriptors.get(f"hid.feature.{report_id:02x}")
+        blob = self._descriptor(f"hid.feature.{report_id:02x}")
         if blob is None:
             raise DeviceIOError(f"{self.url}: feature report 0x{report_id:02x} was not recorded for"
                                 f" {self.record.name}", source=self.url)
@@ -138,7 +148,7 @@ class ReplayTransport(Transport, HidTransportBase):
         return self.write(data)
 
     def report_descriptor(self) -> bytes:
-        blob = self.record.descriptors.get("hid.report_descriptor")
+        blob = self._descriptor("hid.report_descriptor")
         if blob is None:
             raise DeviceIOError(f"{self.url}: no report descriptor was recorded for {self.record.name}",
                                 source=self.url)

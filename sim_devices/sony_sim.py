@@ -174,6 +174,10 @@ class _SonyResponder(HidResponder):
         self.motion = WavingMotion(int(self.opts.get("seed", 1)))
         self.full = self.bus == USB
 
+    def on_open(self) -> None:
+        # over Bluetooth the pad starts in reduced reports until the host reads the calibration
+        self.full = self.bus == USB
+
     def _make_calibration(self, which: str) -> ImuCalibration:
         r = self.rng
         if which == "degenerate":

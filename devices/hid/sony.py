@@ -47,7 +47,7 @@ from capture.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
-from capture.sample import DeviceClockSpec, StreamInfo
+from capture.sample import DeviceChunk, DeviceClockSpec, StreamInfo
 from devices.base import Reading
 from devices.codecs.sony import (
     BLUETOOTH,
@@ -180,11 +180,15 @@ class _SonyPad(HidDevice):
                     f"{self._what()}: the pad answered the calibration read but kept sending reduced reports"
                     f" (0x01, no motion data; {reduced} seen) instead of full 0x{self.full_bt_id:02x} reports"
                     f" within {timeout:g} s", source=self.transport.url)
-            chunk = self.hid_read(min(left, 0.05))
+            chunk = self.transport.read(min(left, 0.05))
             if chunk is None or not chunk.data:
                 continue
             if chunk.data[0] == self.full_bt_id:
+                # the first full report is motion like any other: decoded, not swallowed by the
+                # handshake (so a replay that does not re-run this handshake decodes the same)
+                self._pending += self.process_chunk(chunk)
                 return
+            self._pending.append(DeviceChunk(self.name, chunk))  # kept in the session, not decoded
             reduced += 1
 
     # -- decoding ----------------------------------------------------------------------------------

@@ -132,3 +132,23 @@ def test_a_reader_that_falls_behind_loses_the_oldest_reports_beyond_the_os_buffe
     assert np.all(np.diff([c.t_ns for c in got]) >= 0)
     assert got[0].t_ns >= t.arrival_ns[1]
     t.close()
+
+
+def test_a_controller_that_comes_back_over_bluetooth_is_the_same_device_and_replays_equal(tmp_path):
+    """Unplugged from USB, reconnected over Bluetooth: the same streams continue (the Bluetooth
+    handshake and report format), the session keeps both handshakes, and the replay answers each
+    open with what that open read."""
+    out = str(tmp_path / "bt.mcap")
+    cap = Capture(["pad=dualsense@simhid://dualsense?realtime=false&duration=3&unplug_at=1&unplug_for=0.3"
+                   "&replug_bus=bluetooth"], output=out, reconnect=ReconnectPolicy(initial_s=0.01, max_s=0.05))
+    rep = cap.run(None)
+    assert rep.devices["pad"]["reconnects"] == 1
+    r = SessionReader(out)
+    assert r.devices["pad"].history[BUS_KEY] == [b"usb", b"bluetooth"]
+    imu = r.samples("pad/imu")
+    before = imu.t_bus_ns < imu.t_bus_ns[0] + 1_000_000_000
+    assert before.sum() > 200 and (~before).sum() > 300  # motion on both sides of the switch
+    acc = np.linalg.norm(imu.values[:, 0:3], axis=1)
+    assert 5 < np.median(acc[before]) < 15 and 5 < np.median(acc[~before]) < 15  # calibrated on both buses
+    v = replay_session(out, speed=0)
+    assert v.verification["equal"], v.verification["first_mismatch"]
