@@ -252,6 +252,8 @@ def cmd_info(args: argparse.Namespace) -> int:
             + ", ".join(f"{n} x {what}" for what, n in sorted(s["damaged"].items())))
     for d in s["devices"]:
         out(f"  device {d['name']}: {d['kind']} @ {d['url']}")
+        if d.get("descriptors"):  # what its handshake read: report descriptor, calibration, bus
+            out(f"      descriptors: {', '.join(d['descriptors'])}")
     for st in s["streams"]:
         clk = st["clock"] or {}
         c = (f"drift {clk['drift_ppm']:+.1f} ppm, {clk['epochs']} epoch(s)" if clk and not clk.get("pseudo")
