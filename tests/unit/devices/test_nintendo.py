@@ -54,7 +54,7 @@ def run(url: str) -> tuple[object, list[Sample]]:
 
 
 # -- descriptor -----------------------------------------------------------------------------------
-@pytest.mark.skipif(not TRACE.exists(), reason="trace folder not available")
+@pytest.mark.skipif(not TRACE.exists(), reason="Switch Pro trace not found (../shared/traces must sit beside the project)")
 def test_real_pro_descriptor_report_sizes_match_the_codec():
     tr = load_trace()
     assert (tr["vid"], tr["pid"]) == (0x057E, 0x2009)
