@@ -18,6 +18,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from capture import __version__
@@ -96,6 +97,8 @@ def _settings(args: argparse.Namespace) -> Any:
         overrides["orientation"] = {"enabled": getattr(args, "orientation", None), "filter": getattr(args, "filter", None)}
     if getattr(args, "calibration_dir", None):
         overrides["calibration"] = {"dir": args.calibration_dir}
+    if getattr(args, "command", None) == "serve":
+        overrides["serve"] = _serve_overrides(args)
     return load_config(getattr(args, "config", None), getattr(args, "profile", None), overrides)
 
 
@@ -135,6 +138,147 @@ def cmd_record(args: argparse.Namespace) -> int:
                                                    " until Ctrl-C"), file=sys.stderr)
     report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else _live_line)
     return _print_capture(report, args.json)
+
+
+def _print_qr(url: str) -> None:
+    """The URL as a QR code, when stdout is a terminal (a phone camera opens it)."""
+    if not sys.stdout.isatty():
+        return
+    try:
+        import qrcode
+
+        q = qrcode.QRCode(border=1)
+        q.add_data(url)
+        q.make(fit=True)
+        q.print_ascii(out=sys.stdout, tty=False, invert=True)
+    except Exception as exc:  # noqa: BLE001 - the URL is printed as text anyway
+        log.info("no QR code: %s", exc)
+
+
+#: ``perfcap serve`` flags that are ``[serve]`` settings (flag dest -> key)
+_SERVE_FLAGS = ("host", "port", "public_host", "control_host", "control_port", "state_dir", "sessions_dir",
+                "osc_port", "osc_allow", "osc_map", "hyperimu_port", "hyperimu_tcp_port", "hyperimu_allow",
+                "hyperimu_sensors", "max_phones", "max_message_kb", "max_rate", "max_connections_per_host")
+
+
+def _serve_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    o: dict[str, Any] = {k: getattr(args, k) for k in _SERVE_FLAGS}
+    if args.no_tls:
+        o["tls"] = False
+    if args.no_mdns:
+        o["mdns"] = False
+    if args.connect_sensorserver:
+        o["connect_sensorserver"] = True
+    if args.phone_name:
+        o["phone_names"] = ",".join(args.phone_name)
+    return o
+
+
+def _serve_config(ss: Any) -> Any:
+    """``ServeConfig`` from the ``[serve]`` settings.
+
+    Raises:
+        ConfigError: a phone name entry is malformed.
+    """
+    from capture.serve.gateway import Limits
+    from capture.serve.service import ServeConfig
+
+    names = {}
+    for item in (i.strip() for i in ss.phone_names.split(",")):
+        if not item:
+            continue
+        key, sep, name = item.partition("=")
+        if not sep or "/" not in key or not name:
+            raise ConfigError(f"phone name {item!r}: expected PROTOCOL/ID=NAME, e.g. page/5f2c0a=pocket")
+        names[key.strip()] = name.strip()
+    limits = Limits(max_message_bytes=ss.max_message_kb * 1024, max_push_bytes=ss.max_push_mb << 20,
+                    rate_hz=ss.max_rate, burst=max(ss.max_rate * 2, 1.0), max_connections=ss.max_phones * 2,
+                    max_connections_per_host=ss.max_connections_per_host)
+    return ServeConfig(host=ss.host, port=ss.port, tls=ss.tls, public_host=ss.public_host,
+                       control_host=ss.control_host, control_port=ss.control_port, state_dir=ss.state_dir,
+                       mdns=ss.mdns, mdns_interfaces=ss.mdns_interfaces,
+                       connect_sensorserver=ss.connect_sensorserver, sensorserver_types=ss.sensorserver_types,
+                       osc_port=ss.osc_port, osc_allow=ss.osc_allow, osc_map=ss.osc_map,
+                       hyperimu_port=ss.hyperimu_port, hyperimu_tcp_port=ss.hyperimu_tcp_port,
+                       hyperimu_allow=ss.hyperimu_allow, hyperimu_sensors=ss.hyperimu_sensors,
+                       max_phones=ss.max_phones, limits=limits, names=names, sessions_dir=ss.sessions_dir)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from capture.serve.service import Service
+    from devices import parse_device_spec
+
+    _check_duration(args.duration)
+    s = _settings(args)
+    cfg = _serve_config(s.serve)
+    specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
+    if args.rotate_token:
+        from capture.serve.security import TokenStore
+        from capture.serve.service import default_state_dir
+
+        TokenStore(Path(cfg.state_dir) if cfg.state_dir else default_state_dir()).rotate()
+    service = Service(cfg, specs, reconnect=s.reconnect_policy(),
+                      capture_options={"max_loss_s": s.recorder.max_loss_s, "fsync": s.recorder.fsync,
+                                       "recorder_max_bytes": s.bus.recorder_max_mb << 20,
+                                       "live_queue": s.bus.live_queue})
+
+    def ready(svc: Service) -> None:
+        ep = svc.endpoints
+        out(f"perfcap {__version__} serve")
+        out(f"  phone page      {ep.page_url}   (open on the phone; same Wi-Fi)")
+        out(f"  pairing link    {ep.pair_url}")
+        out(f"  pairing token   {svc.tokens.token}   (shown once; rotate with --rotate-token or POST /api/token/rotate)")
+        if ep.fingerprint:
+            out(f"  TLS certificate SHA-256 {ep.fingerprint}")
+            out("                  (self-signed: the phone warns once; check that it shows this fingerprint)")
+        out(f"  Sensor Logger   push URL {ep.sensorlogger_url}")
+        if ep.osc_port:
+            out(f"  OSC (ZIG SIM/GyrOSC)  udp port {ep.osc_port}, map {cfg.osc_map}, from {cfg.osc_allow}")
+        if ep.hyperimu_port or ep.hyperimu_tcp_port:
+            out(f"  HyperIMU        udp {ep.hyperimu_port or 'off'}, tcp {ep.hyperimu_tcp_port or 'off'},"
+                f" sensors {cfg.hyperimu_sensors}, from {cfg.hyperimu_allow}")
+        if ep.control_url:
+            out(f"  control API     {ep.control_url}  (Authorization: Bearer <token>)")
+        out(f"  mDNS            {ep.advertised or 'off: ' + str(ep.mdns_error or 'disabled')}")
+        _print_qr(ep.pair_url)
+        if args.record:
+            path = svc.start_recording(args.record, overwrite=s.recorder.overwrite)
+            out(f"  recording to    {path}")
+        out("Ctrl-C stops and flushes the recording.")
+        sys.stdout.flush()
+
+    async def main_async() -> Any:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, lambda sig=sig: (
+                print(f"\nperfcap: {signal.Signals(sig).name} received, stopping and flushing", file=sys.stderr),
+                service.request_stop()))
+        if args.duration:
+            loop.call_later(args.duration, service.request_stop)
+
+        async def ticker() -> None:
+            t0 = loop.time()
+            while True:
+                await asyncio.sleep(args.status_every)
+                _live_line(service.capture, loop.time() - t0)
+
+        task = loop.create_task(ticker()) if not args.quiet and args.status_every > 0 else None
+        try:
+            return await service.run(on_ready=ready)
+        finally:
+            if task is not None:
+                task.cancel()
+
+    report = asyncio.run(main_async())
+    rej = service.gateway.rejected.as_dict()
+    if rej:
+        out("refused input: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))
+    if report is None:
+        return EXIT_BAD_INPUT
+    code = _print_capture(report, args.json)
+    return 0 if code == 1 and not service.capture.devices else code
 
 
 def _print_capture(report: Any, as_json: bool) -> int:
@@ -387,8 +531,44 @@ def _stop_serial_sim(proc: Any) -> None:
             proc.stdout.close()
 
 
+def _start_demo_service(devices: list[str], path: str, overwrite: bool) -> tuple[Any, Any]:
+    """The demo's devices in a ``perfcap serve`` service on loopback, recording from the start."""
+    import secrets
+
+    from capture.serve.service import ServeConfig, Service, ServiceThread
+
+    cfg = ServeConfig(host="127.0.0.1", port=0, control_port=-1, mdns=False,
+                      state_dir=tempfile.mkdtemp(prefix="perfcap-demo-serve-"), token=secrets.token_urlsafe(18),
+                      names={"page/demo-phone": "phone"})
+    service = Service(cfg, devices)
+    try:
+        service.capture.start_recording(path, overwrite=overwrite, meta={"command": "perfcap demo"})
+    except BaseException:
+        service.capture.stop()
+        raise
+    return service, ServiceThread(service).start()
+
+
+def _start_demo_phone(service: Any, duration: float) -> Any:
+    """A simulated phone running the built-in page, through the service's real TLS WebSocket."""
+    from importlib.metadata import entry_points
+
+    eps = {ep.name: ep for ep in entry_points(group="perfcap.sims")}
+    if "phone" not in eps:
+        log.warning("no simulated phone (is perfcap installed with pip install -e .?)")
+        return None
+    mod = eps["phone"].load().__module__
+    import importlib
+
+    m = importlib.import_module(mod)
+    ep = service.endpoints
+    url = ep.page_url.replace("https://", "wss://").replace("http://", "ws://") + "ws/phone"
+    phone = m.SimPagePhone(url, service.tokens.token, "demo-phone", rate_hz=60.0, duration_s=duration + 1.0,
+                           seed=7, fingerprint=ep.fingerprint or None)
+    return m.PhoneThread(phone).start()
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
-    from capture.pipeline import Capture
     from capture.player import replay_session
     from capture.session import SessionReader
     from capture.summary import summarize
@@ -406,11 +586,29 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if sim is not None:
         out(f"  (hand is a WT901 served on a pty by 'perfcap sim serial' in another process, read through pyserial;"
             f" it is unplugged {DEMO_UNPLUG_AT:g} s in for {DEMO_UNPLUG_FOR:g} s)")
+    out("  phone  the built-in phone page, simulated: 60 Hz devicemotion over a WebSocket with TLS to the service"
+        " on loopback (token, certificate pinned)")
     stop = _stop_on_signals()
+    phone = None
     try:
-        cap = Capture([f"{n}={u}" for n, u in devices], output=path, overwrite=args.overwrite,
-                      meta={"command": "perfcap demo"})
-        report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else _live_line)
+        service, st = _start_demo_service([f"{n}={u}" for n, u in devices], path, args.overwrite)
+        cap = service.capture
+        try:
+            phone = _start_demo_phone(service, args.duration)
+            t0 = time.monotonic()
+            next_tick = 1.0
+            while not stop.is_set():
+                elapsed = time.monotonic() - t0
+                if elapsed >= args.duration:
+                    break
+                stop.wait(min(0.05, args.duration - elapsed))
+                if not args.quiet and elapsed >= next_tick:
+                    _live_line(cap, elapsed)
+                    next_tick += 1.0
+        finally:
+            if phone is not None:
+                phone.stop()
+            report = st.stop()
     finally:
         if sim is not None:
             _stop_serial_sim(sim[0])
@@ -438,6 +636,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
             settled = err[true_t >= true_t[0] + 1_000_000_000] if len(true_t) else err
             if settled.size:
                 accuracy[d.name] = float(np.percentile(settled, 99)) / 1e6
+    if phone is not None and phone.phone.t0_host_ns is not None and "phone/imu" in reader.streams:
+        import numpy as np
+
+        b = reader.samples("phone/imu")
+        ph = phone.phone
+        true_t = ph.t0_host_ns + b.t_device_ns - int(ph.t0_ms * 1e6)  # page event time -> host clock
+        err = np.abs(b.t_bus_ns - true_t)
+        settled = err[true_t >= true_t[0] + 1_000_000_000]
+        if settled.size:
+            accuracy["phone"] = float(np.percentile(settled, 99)) / 1e6
     out(f"\nsession {path}: {s['size_bytes'] / 1024:.0f} KiB for {(s['raw_bytes'] or 0) / 1024:.0f} KiB of raw device bytes")
     truth = {"wrist": 80.0, "head": -40.0, "pad": 30.0}
     for st in s["streams"]:
@@ -452,6 +660,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                    f"{clk.get('epochs', 1)} epoch(s)"
             if dev in accuracy:
                 desc += f"; bus times within {accuracy[dev]:.2f} ms of the true reading times (p99, after the first second)"
+        if dev == "phone" and phone is not None:
+            desc += f"; {phone.phone.events} events sent, over TLS + WebSocket"
         if dev == "hand" and sim is not None and st["drops"]:
             desc += f"; its drops are the readings sent during the {DEMO_UNPLUG_FOR:g} s it was unplugged"
         out(f"  {st['name']:12s} {st['samples']:6d} samples {st['rate_hz']:7.2f} Hz  {st['drops']} drops  {desc}")
@@ -820,6 +1030,44 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-q", "--quiet", action="store_true")
     e.set_defaults(func=cmd_export)
 
+    sv = sub.add_parser("serve", help="the capture service: phones (built-in page, Sensor Logger, OSC, HyperIMU, "
+                        "SensorServer), control API, mDNS")
+    sv.add_argument("-d", "--device", action="append", metavar="DEVICE", help="also capture this device")
+    sv.add_argument("--record", metavar="SESSION.mcap", help="record from the start (else POST /api/record/start)")
+    sv.add_argument("--sessions-dir", help="where POST /api/record/start puts sessions without a path")
+    sv.add_argument("--host", help="address the phone endpoints listen on (default all)")
+    sv.add_argument("--port", type=int, help="phone page / WebSocket / Sensor Logger port (HTTPS)")
+    sv.add_argument("--public-host", help="address phones use to reach this machine (default: detected LAN address)")
+    sv.add_argument("--no-tls", action="store_true", help="plain HTTP (browsers then refuse motion sensors)")
+    sv.add_argument("--control-host", help="control API address (default loopback only)")
+    sv.add_argument("--control-port", type=int, help="control API port (-1: none)")
+    sv.add_argument("--state-dir", help="where the token and certificate are kept")
+    sv.add_argument("--rotate-token", action="store_true", help="make a new pairing token before starting")
+    sv.add_argument("--no-mdns", action="store_true", help="do not advertise or browse with mDNS")
+    sv.add_argument("--connect-sensorserver", action="store_true",
+                    help="connect to SensorServer phones found by mDNS without asking")
+    sv.add_argument("--osc-port", type=int, help="OSC UDP port (ZIG SIM, GyrOSC); off by default")
+    sv.add_argument("--osc-allow", help="addresses allowed to send OSC (needed with --osc-port)")
+    sv.add_argument("--osc-map", help="OSC address map: zigsim, gyrosc or a custom map")
+    sv.add_argument("--hyperimu-port", type=int, help="HyperIMU UDP port; off by default")
+    sv.add_argument("--hyperimu-tcp-port", type=int, help="HyperIMU TCP port; off by default")
+    sv.add_argument("--hyperimu-allow", help="addresses allowed to send HyperIMU CSV")
+    sv.add_argument("--hyperimu-sensors",
+                    help="HyperIMU's enabled sensors, in the app's order")
+    sv.add_argument("--phone-name", action="append", metavar="PROTOCOL/ID=NAME",
+                    help="a fixed device name for a phone (e.g. page/5f2c0a...=pocket)")
+    sv.add_argument("--max-phones", type=int)
+    sv.add_argument("--max-message-kb", type=int, help="largest message accepted (KiB)")
+    sv.add_argument("--max-rate", type=float, help="messages per second per client")
+    sv.add_argument("--max-connections-per-host", type=int)
+    sv.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long")
+    sv.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines (0: none)")
+    sv.add_argument("--config", metavar="FILE")
+    sv.add_argument("--profile", metavar="NAME")
+    sv.add_argument("-q", "--quiet", action="store_true")
+    sv.add_argument("--json", action="store_true", help="final report as JSON")
+    sv.set_defaults(func=cmd_serve)
+
     d = sub.add_parser("demo", help="hardware-free demo: simulated devices -> bus -> session -> replay")
     d.add_argument("--duration", type=float, default=5.0, metavar="SECONDS")
     d.add_argument("-o", "--output", metavar="SESSION.mcap", help="where to keep the demo session")
@@ -868,7 +1116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="perfcap: %(levelname)s: %(message)s", stream=sys.stderr)
-    if args.command in ("record", "demo") or args.command == "replay" and not args.fast:
+    if args.command in ("record", "demo", "serve") or args.command == "replay" and not args.fast:
         # Live work: a shorter interpreter switch interval lets reader and delivery threads wake
         # within ~0.5 ms while another thread is busy encoding (the default 5 ms would dominate the
         # latency tail). Offline work keeps the default, which is faster for it.

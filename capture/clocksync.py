@@ -16,9 +16,24 @@ How ``ClockSync`` fits it:
 * Between refits, a point that lands *below* the line moves the line down at once.
 * Readings in one chunk get their own device times, so a batch is spread out correctly; only the
   newest reading of a chunk constrains the fit (it is the least delayed).
+* A sender that batches (a phone page posting every 50 ms) sends its newest reading some time after
+  taking it, and that age is not a network delay: the fit would learn it as part of the offset
+  and from the rare messages sent right after a reading, which also makes the drift noisy. When the
+  message says when it was sent on the device clock, pass that as ``send_ticks``: the arrival is
+  then paired with the send time (or the newest reading, if that is later) and the age drops out.
 * Device clocks that wrap are unwrapped using the host time elapsed (so even a gap longer than one
   wrap period counts the wraps right), and a jump that disagrees with the host clock by more than
   ``reset_tolerance_s`` starts a new *epoch* (device reset or power cycle).
+* Device clocks that follow a wall clock (a phone app's UTC times) can be *stepped* by less than
+  that (NTP, the network's time). With ``step_s`` set, such a step starts a new epoch too, keeping
+  the fitted rate: at once when the device clock jumps ahead (a point more than ``step_s`` below
+  the line, which no network delay can cause), and when it jumps back once every point for
+  ``step_confirm_s`` of host time lies more than ``step_s`` above the line (a stall or a burst of
+  late messages ends sooner). Without it a step is neither: the line follows a forward step at
+  once, but the window then mixes points from both sides of it, and the fit is wrong until the
+  window has passed the step (about ``window_s`` seconds). With ``step_s`` set, lateness beyond
+  ``reset_tolerance_s`` needs the same confirmation: a Wi-Fi stall of a few seconds delivers its
+  messages late, in a burst, and they keep their device times instead of starting two epochs.
 * Streams without a device clock get a pseudo clock: the reading counter at the nominal rate. The
   fit then recovers the true rate and dejitters arrivals; a delay beyond the gap threshold (a
   stall, a reconnect, dropped readings) re-anchors it.
@@ -150,11 +165,20 @@ class ClockSync:
             new epoch. Clipped to a quarter of the wrap period for fast-wrapping counters.
         gap_s: for pseudo clocks, a delay beyond this (plus twice the largest recent delay)
             re-anchors (default: 4 periods, at least 50 ms).
+        step_s: device clocks only: a step of the device clock larger than this starts a new epoch
+            (see the module docstring), and late arrivals beyond ``reset_tolerance_s`` need
+            ``step_confirm_s`` of confirmation before they do. ``None`` (default): only
+            ``reset_tolerance_s`` applies, both ways. Choose it above the delays the link adds for
+            ``step_confirm_s`` in a row.
+        step_confirm_s: how long (host time) every point must lie ``step_s`` above the line before
+            a backward step is believed; forward steps are also only believed once an epoch is
+            this old (before that, the line is still settling onto the least-delayed arrivals).
     """
 
     def __init__(self, stream: str, clock: DeviceClockSpec | None, nominal_rate_hz: float | None, *,
                  window_s: float | None = None, bin_s: float = 0.1, refit_s: float = 2.0,
-                 reset_tolerance_s: float = 1.0, gap_s: float | None = None) -> None:
+                 reset_tolerance_s: float = 1.0, gap_s: float | None = None, step_s: float | None = None,
+                 step_confirm_s: float = 2.0) -> None:
         self.stream = stream
         self.pseudo = clock is None
         self._period_ns = 1e9 / nominal_rate_hz if nominal_rate_hz else 0.0
@@ -162,11 +186,19 @@ class ClockSync:
             clock = DeviceClockSpec(tick_hz=float(nominal_rate_hz))
         self.spec = clock
         self._ns_per_tick = 1e9 / clock.tick_hz if clock else 0.0
+        # Whole ns per tick (1 kHz, 1 MHz, 1 GHz clocks): ticks -> ns in integers, exact even for
+        # epoch-based device times (~1.7e18 ns), where float64 would round to 256 ns.
+        npt_int = round(self._ns_per_tick)
+        self._npt_int = npt_int if clock and npt_int >= 1 and npt_int * clock.tick_hz == 1e9 else 0
         self._wrap = clock.wrap_ticks if clock else None
         tol_ns = reset_tolerance_s * 1e9
         if self._wrap:
             tol_ns = min(tol_ns, 0.25 * self._wrap * self._ns_per_tick)
         self._tol_ns = tol_ns
+        self._step_ns = step_s * 1e9 if step_s and not self.pseudo else 0.0
+        self._confirm_ns = step_confirm_s * 1e9
+        self._above_host: int | None = None  # host time of the first point of a run above the line
+        self._epoch_host = 0
         if window_s is None:
             window_s = 4.0 if self.pseudo else 20.0
         # Bins and refits are anchored to absolute device time (integer ns), so the fit does not
@@ -190,12 +222,15 @@ class ClockSync:
         self._delay_hi = 0.0
 
     # -- epochs -------------------------------------------------------------------------------
-    def _start_epoch(self, dev_ns: int, host_ns: int) -> None:
+    def _start_epoch(self, dev_ns: int, host_ns: int, keep_rate: bool = False) -> None:
         self.epoch += 1
         self._x0 = dev_ns
         self._y0 = host_ns - dev_ns
         self._a = 0.0
-        self._b = 0.0
+        if not keep_rate:
+            self._b = 0.0
+        self._above_host = None
+        self._epoch_host = host_ns
         self._mins.clear()
         self._maxs.clear()
         self._bin = dev_ns // self._bin_ns
@@ -211,7 +246,8 @@ class ClockSync:
         self._state_dirty = True
 
     # -- public -------------------------------------------------------------------------------
-    def stamp(self, t_host_ns: int, ticks: Sequence[int] | None, n: int = 1) -> tuple[list[int | None], list[int]]:
+    def stamp(self, t_host_ns: int, ticks: Sequence[int] | None, n: int = 1, *,
+              send_ticks: int | None = None) -> tuple[list[int | None], list[int]]:
         """Times for the ``n`` readings that arrived in one chunk at ``t_host_ns``.
 
         Args:
@@ -219,6 +255,9 @@ class ClockSync:
             ticks: raw device timestamps of the readings, oldest first, or ``None`` if the domain
                 has no device clock.
             n: number of readings (used when ``ticks`` is None).
+            send_ticks: raw device time at which the message was sent, when the protocol carries
+                it (same clock as ``ticks``). The fit then pairs the arrival with it (or with the
+                newest reading if that is later) instead of with the newest reading.
 
         Returns:
             ``(t_device_ns, t_bus_ns)`` lists, one entry per reading. ``t_device_ns`` entries are
@@ -233,9 +272,16 @@ class ClockSync:
                 raise ValueError(f"{self.stream}: device ticks given to a stream declared without a device clock")
             if n == 0:
                 return [], []
-            devs = self._unwrap(ticks, t_host_ns)
+            if send_ticks is None:
+                devs = self._unwrap(ticks, t_host_ns)
+                point = devs[-1]
+            else:
+                devs = self._unwrap([*ticks, send_ticks], t_host_ns)
+                point = max(devs.pop(), devs[-1])
             out_dev: list[int | None] = list(devs)
         else:
+            if send_ticks is not None:
+                raise ValueError(f"{self.stream}: a send time given to a stream declared without a device clock")
             if n <= 0:
                 return [], []
             if self.spec is None:  # no clock, no nominal rate: irregular stream
@@ -245,7 +291,8 @@ class ClockSync:
             p = self._period_ns
             devs = [int(round((c0 + i) * p)) for i in range(n)]
             out_dev = [None] * n
-        self._observe(devs[-1], t_host_ns)
+            point = devs[-1]
+        self._observe(point, t_host_ns)
         rate = 1.0 + self._b
         base = self._x0 + self._y0 + self._a
         bus: list[int] = []
@@ -262,14 +309,16 @@ class ClockSync:
         self._last_bus = last
         return out_dev, bus
 
-    def stamp_many(self, t_host_ns: np.ndarray, chunk_of: np.ndarray,
-                   ticks: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    def stamp_many(self, t_host_ns: np.ndarray, chunk_of: np.ndarray, ticks: np.ndarray | None,
+                   send_ticks: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         """``stamp`` for many chunks at once, bit-identical to calling it chunk by chunk.
 
         Args:
             t_host_ns: int64 arrival time of each chunk (chunks without readings are allowed).
             chunk_of: int64 chunk index of each reading, non-decreasing.
             ticks: int64 raw device ticks of each reading, or ``None`` without a device clock.
+            send_ticks: int64 raw device send time of each chunk (indexed like ``t_host_ns``), as
+                ``stamp``'s ``send_ticks``; ``None`` when the messages carry none.
 
         Returns:
             ``(t_device_ns or None, t_bus_ns, epoch of each reading)``.
@@ -289,11 +338,27 @@ class ClockSync:
         first_idx[0] = 0
         first_idx[1:] = last_idx[:-1] + 1
         hosts = t_host_ns[chunk_of[last_idx]]
+        pts_dev: np.ndarray | None = None
         if ticks is not None:
             if self.pseudo:
                 raise ValueError(f"{self.stream}: device ticks given to a stream declared without a device clock")
-            devs = self._unwrap_many(np.asarray(ticks, np.int64), first_idx, hosts)
+            ticks = np.asarray(ticks, np.int64)
+            if send_ticks is None:
+                devs = self._unwrap_many(ticks, first_idx, hosts)
+            else:
+                # unwrap each chunk's send time right after its readings, as ``stamp`` does
+                m = last_idx.shape[0]
+                rank = np.repeat(np.arange(m), last_idx - first_idx + 1)
+                merged = np.empty(n + m, np.int64)
+                merged[np.arange(n) + rank] = ticks
+                send_pos = last_idx + np.arange(m) + 1
+                merged[send_pos] = np.asarray(send_ticks, np.int64)[chunk_of[last_idx]]
+                both = self._unwrap_many(merged, first_idx + np.arange(m), hosts)
+                devs = both[np.arange(n) + rank]
+                pts_dev = np.maximum(both[send_pos], devs[last_idx])
             out_dev: np.ndarray | None = devs
+        elif send_ticks is not None:
+            raise ValueError(f"{self.stream}: a send time given to a stream declared without a device clock")
         elif self.spec is None:
             bus = np.empty(n, np.int64)
             for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist()):
@@ -306,17 +371,18 @@ class ClockSync:
             out_dev = None
         bus = np.empty(n, np.int64)
         epochs = np.empty(n, np.int64)
-        pts_dev = devs[last_idx]
+        if pts_dev is None:
+            pts_dev = devs[last_idx]
         m = len(last_idx)
         i = 0
         while i < m:
             if self._new_epoch_pending:
-                self._scalar_chunk(i, devs, first_idx, last_idx, hosts, bus, epochs)
+                self._scalar_chunk(i, devs, pts_dev, first_idx, last_idx, hosts, bus, epochs)
                 i += 1
                 continue
             r = self._vector_segment(i, devs, pts_dev, first_idx, last_idx, hosts, bus, epochs)
             if r < m:
-                self._scalar_chunk(r, devs, first_idx, last_idx, hosts, bus, epochs)
+                self._scalar_chunk(r, devs, pts_dev, first_idx, last_idx, hosts, bus, epochs)
                 r += 1
             i = r
         return out_dev, bus, epochs
@@ -361,7 +427,7 @@ class ClockSync:
                     self._wraps += k
             self._last_raw = raw
             total = raw + self._wraps * wrap if wrap else raw
-            out.append(int(round(total * npt)))
+            out.append(total * self._npt_int if self._npt_int else int(round(total * npt)))
         return out
 
     def _unwrap_many(self, raw: np.ndarray, first_idx: np.ndarray, hosts: np.ndarray) -> np.ndarray:
@@ -390,14 +456,16 @@ class ClockSync:
         else:
             total = raw
         self._last_raw = int(raw[-1])
+        if self._npt_int:
+            return total.astype(np.int64) * self._npt_int
         return np.round(total.astype(np.float64) * npt).astype(np.int64)
 
-    def _scalar_chunk(self, c: int, devs: np.ndarray, first_idx: np.ndarray, last_idx: np.ndarray,
-                      hosts: np.ndarray, bus: np.ndarray, epochs: np.ndarray) -> None:
+    def _scalar_chunk(self, c: int, devs: np.ndarray, pts_dev: np.ndarray, first_idx: np.ndarray,
+                      last_idx: np.ndarray, hosts: np.ndarray, bus: np.ndarray, epochs: np.ndarray) -> None:
         f, l_ = int(first_idx[c]), int(last_idx[c])
         host = int(hosts[c])
         dl = devs[f:l_ + 1].tolist()
-        self._observe(dl[-1], host)
+        self._observe(int(pts_dev[c]), host)
         rate = 1.0 + self._b
         base = self._x0 + self._y0 + self._a
         last = self._last_bus
@@ -442,6 +510,8 @@ class ClockSync:
         if self.pseudo:
             stop |= delay > self._gap_ns + 2 * self._delay_hi
         stop |= (d // self._refit_ns) != self._refit_slot
+        if self._step_ns:  # points that may be a step, or start or extend a run above: per point
+            stop |= (delay > self._step_ns) | (delay < -self._step_ns)
         hit = np.flatnonzero(stop)
         k = int(hit[0]) if hit.size else len(d)
         if k == 0:
@@ -477,6 +547,7 @@ class ClockSync:
             self._state_dirty = True
         self._a = a_new
         self.points += k
+        self._above_host = None  # these points were all within step_s of the line
         self._last_dev = int(d[k - 1])
         self._last_host = int(h[k - 1])
         # bus times of the readings of these chunks
@@ -498,7 +569,8 @@ class ClockSync:
         else:
             delay = host - self.predict_bus_ns(dev)
             back = dev < self._last_dev
-            if back or delay < -self._tol_ns or delay > self._tol_ns:
+            # with step_s, lateness alone (a network stall) needs the confirmation of a backward step
+            if back or delay < -self._tol_ns or (delay > self._tol_ns and not self._step_ns):
                 self.resets += 1
                 log.info("%s: clock epoch %d ends (device %s, delay %.1f ms)", self.stream, self.epoch,
                          "went back" if back else "jumped", delay / 1e6)
@@ -507,6 +579,8 @@ class ClockSync:
                 self.resets += 1
                 log.info("%s: arrival gap of %.1f ms; pseudo clock re-anchored", self.stream, delay / 1e6)
                 self._start_epoch(dev, host)
+            elif self._step_ns:
+                self._check_step(dev, host, delay)
         self.points += 1
         self._last_host = host
         self._last_dev = dev
@@ -535,6 +609,24 @@ class ClockSync:
         if slot != self._refit_slot:
             self._refit()
             self._refit_slot = slot
+
+    def _check_step(self, dev: int, host: int, delay: float) -> None:
+        """``step_s`` detection for one point (its delay from the current line)."""
+        if delay > self._step_ns:
+            if self._above_host is None:
+                self._above_host = host
+            elif host - self._above_host >= self._confirm_ns:
+                self.resets += 1
+                log.info("%s: clock epoch %d ends (device clock stepped back by about %.1f ms)", self.stream,
+                         self.epoch, delay / 1e6)
+                self._start_epoch(dev, host, keep_rate=True)
+            return
+        self._above_host = None
+        if delay < -self._step_ns and self.points >= 3 and host - self._epoch_host >= self._confirm_ns:
+            self.resets += 1
+            log.info("%s: clock epoch %d ends (device clock stepped ahead by about %.1f ms)", self.stream,
+                     self.epoch, -delay / 1e6)
+            self._start_epoch(dev, host, keep_rate=True)
 
     def _refit(self) -> None:
         pts = self._mins.with_point(self._bin_min)

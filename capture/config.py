@@ -30,6 +30,11 @@ A config file looks like::
     [calibration]
     dir = ""                   # default: $XDG_DATA_HOME/perfcap/calibration
 
+    [serve]                    # perfcap serve; every key is also a flag (--osc-port ...)
+    port = 8443
+    osc_port = 9000            # 0 = off; OSC and HyperIMU need an allow-list
+    osc_allow = "192.168.1.0/24"
+
     [[devices]]
     name = "wrist"
     kind = "witmotion"
@@ -87,12 +92,44 @@ class CalibrationSettings:
 
 
 @dataclass
+class ServeSettings:
+    """``perfcap serve`` (see ``capture.serve.service.ServeConfig``)."""
+
+    host: str = "0.0.0.0"          # address the phone endpoints listen on
+    port: int = 8443               # phone page, WebSocket, Sensor Logger push (HTTPS)
+    public_host: str = ""          # the address phones use ("" = the detected LAN address)
+    tls: bool = True
+    control_host: str = "127.0.0.1"
+    control_port: int = 8780       # -1 = no control API
+    state_dir: str = ""            # token and certificate ("" = $XDG_DATA_HOME/perfcap/serve)
+    sessions_dir: str = "."        # where POST /api/record/start puts sessions without a path
+    mdns: bool = True
+    mdns_interfaces: str = "all"
+    connect_sensorserver: bool = False
+    sensorserver_types: str = "accelerometer,gyroscope"
+    osc_port: int = 0              # 0 = off
+    osc_allow: str = ""
+    osc_map: str = "zigsim"
+    hyperimu_port: int = 0         # UDP; 0 = off
+    hyperimu_tcp_port: int = 0
+    hyperimu_allow: str = ""
+    hyperimu_sensors: str = "accelerometer,gyroscope,magnetometer"
+    phone_names: str = ""          # "page/5f2c...=pocket,sensorlogger/abc=belt"
+    max_phones: int = 32
+    max_message_kb: int = 64
+    max_push_mb: int = 4
+    max_rate: float = 200.0        # messages per second per client
+    max_connections_per_host: int = 4
+
+
+@dataclass
 class Settings:
     bus: BusSettings = field(default_factory=BusSettings)
     recorder: RecorderSettings = field(default_factory=RecorderSettings)
     reconnect: ReconnectSettings = field(default_factory=ReconnectSettings)
     orientation: OrientationSettings = field(default_factory=OrientationSettings)
     calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
+    serve: ServeSettings = field(default_factory=ServeSettings)
     devices: list[Any] = field(default_factory=list)  # DeviceSpec
     sources: list[str] = field(default_factory=list)
 
@@ -103,12 +140,16 @@ class Settings:
 
 
 _SECTIONS = {"bus": BusSettings, "recorder": RecorderSettings, "reconnect": ReconnectSettings,
-             "orientation": OrientationSettings, "calibration": CalibrationSettings}
+             "orientation": OrientationSettings, "calibration": CalibrationSettings, "serve": ServeSettings}
 _CHOICES: dict[str, tuple[str, ...]] = {"orientation.filter": ("fusion", "madgwick", "mahony", "ekf")}
 _LIMITS: dict[str, tuple[float, float]] = {
     "bus.live_queue": (1, 10_000_000), "bus.recorder_max_mb": (1, 1_000_000),
     "recorder.max_loss_s": (0.01, 3600), "reconnect.initial_s": (0.001, 3600), "reconnect.max_s": (0.001, 3600),
     "reconnect.give_up_after_s": (0, 10**9),
+    "serve.port": (0, 65535), "serve.control_port": (-1, 65535), "serve.osc_port": (0, 65535),
+    "serve.hyperimu_port": (0, 65535), "serve.hyperimu_tcp_port": (0, 65535), "serve.max_phones": (1, 10_000),
+    "serve.max_message_kb": (1, 1 << 20), "serve.max_push_mb": (1, 1024), "serve.max_rate": (0.1, 1e6),
+    "serve.max_connections_per_host": (1, 10_000),
 }
 _TYPE_NAMES = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
 

@@ -147,8 +147,8 @@ class Capture:
                  overwrite: bool = False, max_loss_s: float = 1.0, fsync: bool = True,
                  recorder_max_bytes: int = 1 << 30, live_queue: int = 8192,
                  reconnect: ReconnectPolicy = ReconnectPolicy(), meta: dict[str, str] | None = None,
-                 clock: Clock = MONOTONIC) -> None:
-        if not devices:
+                 clock: Clock = MONOTONIC, allow_empty: bool = False) -> None:
+        if not devices and not allow_empty:
             raise ConfigError("no devices given; add at least one with -d DEVICE (e.g. -d synth://imu)")
         self.clock = clock
         names: set[str] = set()
@@ -163,32 +163,117 @@ class Capture:
                 self.devices.append(open_device(d, clock=clock, taken_names=names))
         self.output = output
         self.recorder: SessionRecorder | None = None
+        self._max_loss_s = max_loss_s
+        self._fsync = fsync
+        self.reconnect = reconnect
+        self._lock = threading.RLock()  # devices and the recorder change together (serve adds phones live)
         writer = None
         if output is not None:  # before any thread starts: a bad path must leave nothing running
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
                                    wall_time_s=getattr(clock, "wall_time_s", lambda: None)())
         self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
+        self.processors: list[Any] = []
+        self.orientation: Any = None
         try:
             self.stats = StreamStats()
             self.bus.subscribe(self.stats, policy=Overflow.KEEP_NEWEST, name="stats")
             if writer is not None:
-                self.recorder = SessionRecorder(writer, max_loss_s=max_loss_s, clock=clock)
-                for d in self.devices:
-                    self.recorder.add_device(d.name, d.kind, d.transport.url, d.device_options, d.identity,
-                                             d.streams, d.descriptors())
-                sub = self.bus.subscribe(self.recorder, policy=Overflow.NEVER_DROP, name="recorder")
-                self.recorder.subscription = sub
+                self._attach_recorder(writer)
         except BaseException:
             self.bus.close()
             if writer is not None and not writer.closed:
                 writer.close()
             raise
         self.readers = [DeviceReader(d, self.bus, reconnect) for d in self.devices]
-        self.processors: list[Any] = []
-        self.orientation: Any = None
         self._t_start = 0
         self._stopped = False
         self._report: CaptureReport | None = None
+
+    def _attach_recorder(self, writer: SessionWriter) -> SessionRecorder:
+        rec = SessionRecorder(writer, max_loss_s=self._max_loss_s, clock=self.clock)
+        for d in self.devices:
+            rec.add_device(d.name, d.kind, d.transport.url, d.device_options, d.identity, d.streams, d.descriptors())
+        for proc in self.processors:
+            for info in proc.output_streams():
+                rec.add_stream(info)
+        sub = self.bus.subscribe(rec, policy=Overflow.NEVER_DROP, name="recorder")
+        rec.subscription = sub
+        self.recorder = rec
+        return rec
+
+    def add_device(self, device: Device | DeviceSpec | str) -> Device:
+        """Add a device to a capture, running or not (``perfcap serve`` adds each phone as it pairs).
+        It is declared to the recorder before its reader starts, so its first bytes are recorded.
+
+        Raises:
+            ConfigError: bad spec, or the name is taken.
+            DeviceUnavailableError: unknown kind or scheme.
+        """
+        with self._lock:
+            names = {d.name for d in self.devices}
+            if isinstance(device, Device):
+                if device.name in names:
+                    raise ConfigError(f"device name {device.name!r} is used twice")
+                dev = device
+            else:
+                dev = open_device(device, clock=self.clock, taken_names=names)
+            if self.recorder is not None:
+                self.recorder.add_device(dev.name, dev.kind, dev.transport.url, dev.device_options, dev.identity,
+                                         dev.streams, dev.descriptors())
+            self.devices.append(dev)
+            reader = DeviceReader(dev, self.bus, self.reconnect)
+            self.readers.append(reader)
+            if self._t_start and not self._stopped:
+                reader.start()
+            return dev
+
+    def device(self, name: str) -> Device | None:
+        for d in self.devices:
+            if d.name == name:
+                return d
+        return None
+
+    @property
+    def recording(self) -> bool:
+        return self.recorder is not None and not self._stopped
+
+    def start_recording(self, output: str, *, overwrite: bool = False, meta: dict[str, str] | None = None) -> None:
+        """Start recording a running (or not yet started) capture into a new session file; every
+        device is declared, and what the bus carries from now on is written.
+
+        Raises:
+            ConfigError: a recording is already running.
+            SessionExistsError / SessionError: the file cannot be created.
+        """
+        with self._lock:
+            if self.recorder is not None:
+                raise ConfigError(f"already recording to {self.output}; stop that recording first")
+            writer = SessionWriter(output, overwrite=overwrite, fsync=self._fsync, meta=meta,
+                                   wall_time_s=getattr(self.clock, "wall_time_s", lambda: None)())
+            try:
+                self._attach_recorder(writer)
+            except BaseException:
+                if not writer.closed:
+                    writer.close()
+                raise
+            self.output = output
+
+    def stop_recording(self) -> dict[str, Any]:
+        """Finish the current recording: everything already on the bus is written, the file closed.
+        Returns ``{"output", "samples", "error"}``.
+
+        Raises:
+            ConfigError: nothing is being recorded.
+        """
+        with self._lock:
+            rec = self.recorder
+            if rec is None:
+                raise ConfigError("not recording")
+            self.bus.unsubscribe(rec.subscription, wait=True)
+            self.recorder = None
+            out, self.output = self.output, None
+        return {"output": out, "samples": dict(rec.counts),
+                "error": None if rec.failed is None else str(rec.failed)}
 
     def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST, name: str | None = None) -> Any:
         return self.bus.subscribe(sub, policy=policy, name=name)
@@ -247,9 +332,10 @@ class Capture:
         return proc
 
     def start(self) -> Capture:
-        self._t_start = self.clock.now_ns()
-        for r in self.readers:
-            r.start()
+        with self._lock:
+            self._t_start = self.clock.now_ns()
+            for r in self.readers:
+                r.start()
         return self
 
     def run(self, duration_s: float | None, stop: threading.Event | None = None,
@@ -377,8 +463,9 @@ class Capture:
         """Stop readers, drain every subscriber (the recorder writes everything), close the session."""
         if self._stopped and self._report is not None:
             return self._report
-        self._stopped = True
-        for r in self.readers:
+        with self._lock:
+            self._stopped = True
+        for r in list(self.readers):
             r.stop()
         elapsed = (self.clock.now_ns() - self._t_start) / 1e9 if self._t_start else 0.0
         subs = [s.__dict__ for s in self.bus.stats()]

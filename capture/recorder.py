@@ -9,6 +9,7 @@ SIGKILL loses at most ``max_loss_s`` of data.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any
 
@@ -51,6 +52,9 @@ class SessionRecorder(Subscriber):
             raise ValueError("max_loss_s must be positive")
         self.writer = writer
         self.clock = clock
+        # Devices may be declared while the take runs (serve adds phones as they pair); the writer is
+        # touched under this lock by both the declaring thread and the recorder's own thread.
+        self._wlock = threading.Lock()
         self.flush_ns = int(max_loss_s * 0.5e9)
         self.encode_ns = int(min(encode_interval_s, max_loss_s / 4) * 1e9)
         self._raw: dict[str, list[Chunk]] = {}
@@ -73,14 +77,16 @@ class SessionRecorder(Subscriber):
         """Declare a device before its reader starts (so its channels exist when data comes)."""
         rec = DeviceRecord(name, kind, url, options, _identity_dict(identity), [s.name for s in streams],
                            dict(descriptors or {}))
-        for s in streams:
-            self._channels[s.name] = len(s.channels)
-        self.writer.add_device(rec, streams)
+        with self._wlock:
+            for s in streams:
+                self._channels[s.name] = len(s.channels)
+            self.writer.add_device(rec, streams)
 
     def add_stream(self, info: StreamInfo) -> None:
         """Declare a derived stream (fusion output and the like)."""
-        self._channels[info.name] = len(info.channels)
-        self.writer.add_stream(info)
+        with self._wlock:
+            self._channels[info.name] = len(info.channels)
+            self.writer.add_stream(info)
 
     # -- subscriber ------------------------------------------------------------------------------
     def on_item(self, item: Any) -> None:
@@ -121,16 +127,20 @@ class SessionRecorder(Subscriber):
         if self.failed is not None:
             return
         try:
-            if now >= self._next_encode:
-                self.encode(now)
-                self._next_encode = now + self.encode_ns
-            if now >= self._next_flush:
-                self.writer.flush()
-                self._next_flush = now + self.flush_ns
+            with self._wlock:
+                self._tick_locked(now)
         except Exception as exc:  # noqa: BLE001 - a writing failure stops the recording loudly, never silently
             self.failed = exc if isinstance(exc, SessionError) else SessionError(
                 f"internal error while writing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
             log.error("recorder: %s; recording stopped, data up to the last flush is kept", self.failed)
+
+    def _tick_locked(self, now: int) -> None:
+        if now >= self._next_encode:
+            self.encode(now)
+            self._next_encode = now + self.encode_ns
+        if now >= self._next_flush:
+            self.writer.flush()
+            self._next_flush = now + self.flush_ns
 
     def encode(self, now: int) -> None:
         """Turn everything buffered into blocks in the writer."""
@@ -178,7 +188,8 @@ class SessionRecorder(Subscriber):
         if self.failed is not None:
             return
         try:
-            self.encode(self.clock.now_ns())
+            with self._wlock:
+                self.encode(self.clock.now_ns())
             if self.subscription is not None:
                 st = self.subscription.stats()
                 self.summary_extra["recorder_dropped"] = st.dropped

@@ -35,6 +35,11 @@ DEVICE_TYPES: dict[str, tuple[str, str]] = {
     "dualsense": ("devices.hid.sony", "DualSense"),
     "switchpro": ("devices.hid.nintendo", "SwitchPro"),
     "joycon": ("devices.hid.nintendo", "JoyCon"),
+    "phone": ("devices.phone", "PhonePage"),
+    "sensorlogger": ("devices.phone", "SensorLoggerPhone"),
+    "osc": ("devices.phone_apps", "OscPhone"),
+    "hyperimu": ("devices.phone_apps", "HyperImuPhone"),
+    "sensorserver": ("devices.phone_apps", "SensorServerPhone"),
 }
 
 SPEC_FORM = "[NAME=][KIND@]SCHEME://ADDRESS[?key=value&...]"

@@ -89,6 +89,9 @@ class Device(abc.ABC):
     description: ClassVar[str] = ""
     codec_cls: ClassVar[type[Codec]]
     options: ClassVar[dict[str, Option]] = {}
+    #: keyword arguments for the ClockSync of each device clock (``capture.clocksync.ClockSync``), e.g.
+    #: ``{"window_s": 60.0}`` for a phone whose messages arrive with tens of ms of jitter
+    clock_sync_options: ClassVar[dict[str, Any]] = {}
 
     def __init__(self, name: str, transport: Transport, options: Mapping[str, Any] | None = None,
                  clock: Clock = MONOTONIC, strict: bool = False) -> None:
@@ -201,7 +204,8 @@ class Device(abc.ABC):
             key: Any = (s.clock, s.nominal_rate_hz) if s.clock is not None else ("stream", i)
             if key not in keys:
                 keys[key] = len(self._domains)
-                self._domains.append(ClockSync(s.name, s.clock, s.nominal_rate_hz))
+                opts = self.clock_sync_options if s.clock is not None else {}
+                self._domains.append(ClockSync(s.name, s.clock, s.nominal_rate_hz, **opts))
             self._domain_of.append(keys[key])
         shared = [d for d in self._domains if not d.pseudo]
         if len(shared) == 1:
@@ -233,7 +237,14 @@ class Device(abc.ABC):
         if not frames:
             return out
         readings = [r for f in frames for r in self.frame_to_readings(f)]
-        return self._stamp_readings(readings, chunk.t_ns, out)
+        return self._stamp_readings(readings, chunk.t_ns, out, self.send_ticks(frames))
+
+    def send_ticks(self, frames: list[Any]) -> int | None:
+        """Raw device-clock ticks at which the message that carried ``frames`` was sent, when the
+        protocol says (the phone page's ``sent``). The clock fit then pairs the chunk's arrival with
+        it instead of with the newest reading. For devices whose clocked streams share one clock.
+        Default: ``None``."""
+        return None
 
     def drain_readings(self) -> list[Reading]:
         """Readings the device has assembled but not yet emitted (e.g. a cycle whose last packet
@@ -254,12 +265,13 @@ class Device(abc.ABC):
             self._stamp_readings(readings, self.stats.last_seen_ns, out)
         return out
 
-    def _stamp_readings(self, readings: list[Reading], t: int, out: list[Any]) -> list[Any]:
+    def _stamp_readings(self, readings: list[Reading], t: int, out: list[Any],
+                        send_ticks: int | None = None) -> list[Any]:
         """Stamp the readings that completed in a chunk that arrived at ``t``; append bus items to ``out``."""
         if not readings:
             return out
         if self._one_clock:
-            return self._stamp_one_clock(readings, t, out)
+            return self._stamp_one_clock(readings, t, out, send_ticks)
         st = self.stats
         groups: dict[int, list[Reading]] = {}
         order: list[tuple[int, int]] = []
@@ -276,7 +288,7 @@ class Device(abc.ABC):
         touched: list[int] = []
         for d in sorted({self._domain_of[si] for si in ticks_by}):
             sel = [(si, j) for si, j in order if self._domain_of[si] == d]
-            devs, bus = self._domains[d].stamp(t, [ticks_by[si][j] for si, j in sel])
+            devs, bus = self._domains[d].stamp(t, [ticks_by[si][j] for si, j in sel], send_ticks=send_ticks)
             for (si, j), dv, b in zip(sel, devs, bus):
                 tl = times.get(si)
                 if tl is None:
@@ -324,7 +336,8 @@ class Device(abc.ABC):
                 out.append(cs)
         return out
 
-    def _stamp_one_clock(self, readings: list[Reading], t: int, out: list[Any]) -> list[Any]:
+    def _stamp_one_clock(self, readings: list[Reading], t: int, out: list[Any],
+                         send_ticks: int | None = None) -> list[Any]:
         """``_stamp_readings`` for devices whose streams all run on one device clock (the common case):
         one stamp call, readings in emission order, the same results as the general path."""
         streams = self.streams
@@ -343,7 +356,7 @@ class Device(abc.ABC):
             last_ticks[si] = tk
             ticks.append(tk)
         dom = self._domains[0]
-        devs, bus = dom.stamp(t, ticks)
+        devs, bus = dom.stamp(t, ticks, send_ticks=send_ticks)
         ep = dom.epoch
         if ep != self._domain_epochs[0]:
             self._epoch_changed(0, ep, t, out)
@@ -682,6 +695,10 @@ class DeviceReader:
                 pass
             try:
                 items = dev.open()
+            except EndOfStream:  # the source ended while the device was away (a service shutting down)
+                dev.state = DeviceState.FINISHED
+                self._event(EventKind.FINISHED, "source ended while the device was away")
+                return False
             except DeviceError as again:
                 elapsed = (dev.clock.now_ns() - t_lost) / 1e9
                 if pol.give_up_after_s is not None and elapsed > pol.give_up_after_s:

@@ -20,13 +20,15 @@ from devices.transports.base import Transport, split_url
 
 log = logging.getLogger(__name__)
 
-#: Built-in schemes. HID (issue 4) and network (issue 5) transports join here.
+#: Built-in schemes.
 TRANSPORTS: dict[str, tuple[str, str]] = {
     "serial": ("devices.transports.serialport", "SerialTransport"),
     "rfc2217": ("devices.transports.serialport", "Rfc2217Transport"),
     "socket": ("devices.transports.serialport", "SocketTransport"),
     "loop": ("devices.transports.serialport", "LoopTransport"),
     "hid": ("devices.transports.hid", "HidTransport"),
+    "net": ("devices.transports.network", "NetTransport"),
+    "sensorserver": ("devices.transports.network", "SensorServerTransport"),
 }
 
 _ENTRY_POINT_GROUP = "perfcap.transports"

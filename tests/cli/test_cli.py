@@ -163,7 +163,7 @@ def test_console_script_and_demo_run_without_shared(tmp_path):
     p2 = subprocess.run([sys.executable, "-m", "capture.cli", "info", str(tmp_path / "demo.mcap"), "--json"],
                         capture_output=True, text=True, timeout=60)
     s = json.loads(p2.stdout)
-    assert {x["device"] for x in s["streams"]} == {"wrist", "ankle", "head", "hand", "pad", "pen"}  # hand: pty serial IMU; pad, pen: simulated HID
+    assert {x["device"] for x in s["streams"]} == {"wrist", "ankle", "head", "hand", "pad", "pen", "phone"}  # hand: pty serial IMU; pad, pen: simulated HID; phone: the page over TLS + WebSocket
 
 
 def test_a_device_that_never_opens_is_reported_and_fails_the_take(capsys, tmp_path):

@@ -1,0 +1,1 @@
+"""perfcap serve: the capture service (phone gateway, control API, discovery)."""

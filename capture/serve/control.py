@@ -1,0 +1,99 @@
+"""The control API of ``perfcap serve``: small HTTP/JSON, on loopback by default, token required.
+
+``Authorization: Bearer <pairing token>`` on every request.
+
+* ``GET /api/health``: status, uptime, recording, counts of phones and refused input, mDNS state.
+* ``GET /api/devices``: per device: state, rate, drops, clock offset and drift, last seen, peer.
+* ``POST /api/record/start`` (JSON body optional: ``{"path": "take1.mcap", "overwrite": false}``) and
+  ``POST /api/record/stop``.
+* ``POST /api/token/rotate``: a new pairing token (returned once); the old one stops working and
+  phones that used it are disconnected.
+* ``POST /api/sensorserver`` ``{"host": "192.168.1.40", "port": 8080, "types": "accelerometer,gyroscope"}``:
+  connect to a SensorServer phone.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import TYPE_CHECKING, Any
+
+from aiohttp import web
+
+from capture.errors import CaptureError, ConfigError, SessionExistsError
+
+if TYPE_CHECKING:
+    from capture.serve.service import Service
+
+log = logging.getLogger(__name__)
+
+
+def control_app(service: Service) -> web.Application:
+    @web.middleware
+    async def auth(request: web.Request, handler: Any) -> web.StreamResponse:
+        header = request.headers.get("Authorization", "")
+        token = header[7:].strip() if header[:7].lower() == "bearer " else None
+        if not service.tokens.check(token):
+            service.gateway.rejected.count("missing or wrong token", request.remote, "control API")
+            return web.json_response({"error": "missing or wrong token: send 'Authorization: Bearer <token>'"},
+                                     status=401)
+        try:
+            return await handler(request)
+        except web.HTTPException:
+            raise
+        except SessionExistsError as exc:
+            return web.json_response({"error": str(exc)}, status=409)
+        except ConfigError as exc:
+            return web.json_response({"error": str(exc)}, status=409 if "already" in str(exc) or
+                                     "not recording" in str(exc) else 400)
+        except CaptureError as exc:
+            return web.json_response({"error": str(exc)}, status=500)
+
+    async def body(request: web.Request) -> dict[str, Any]:
+        if not request.can_read_body:
+            return {}
+        try:
+            data = json.loads(await request.read() or b"{}")
+        except ValueError:
+            raise web.HTTPBadRequest(text='{"error": "the body must be JSON"}', content_type="application/json")
+        if not isinstance(data, dict):
+            raise web.HTTPBadRequest(text='{"error": "the body must be a JSON object"}', content_type="application/json")
+        return data
+
+    async def health(request: web.Request) -> web.Response:
+        return web.json_response(service.health())
+
+    async def devices(request: web.Request) -> web.Response:
+        return web.json_response({"devices": service.devices_info()})
+
+    async def record_start(request: web.Request) -> web.Response:
+        b = await body(request)
+        path = b.get("path")
+        if path is not None and not isinstance(path, str):
+            raise ConfigError("path must be a string")
+        out = service.start_recording(path, overwrite=bool(b.get("overwrite", False)))
+        return web.json_response({"recording": out})
+
+    async def record_stop(request: web.Request) -> web.Response:
+        return web.json_response(service.stop_recording())
+
+    async def rotate(request: web.Request) -> web.Response:
+        tok = await service.rotate_token()
+        return web.json_response({"token": tok, "pair_url": service.endpoints.pair_url})
+
+    async def sensorserver(request: web.Request) -> web.Response:
+        b = await body(request)
+        host, port = b.get("host"), b.get("port")
+        if not isinstance(host, str) or not isinstance(port, int):
+            raise ConfigError('expected {"host": "192.168.1.40", "port": 8080}')
+        name = service.add_sensorserver(host, port, b.get("types"), b.get("name"))
+        return web.json_response({"device": name})
+
+    app = web.Application(middlewares=[auth], client_max_size=64 * 1024)
+    app.router.add_get("/api/health", health)
+    app.router.add_get("/api/devices", devices)
+    app.router.add_post("/api/record/start", record_start)
+    app.router.add_post("/api/record/stop", record_stop)
+    app.router.add_post("/api/token/rotate", rotate)
+    app.router.add_post("/api/sensorserver", sensorserver)
+    return app

@@ -1,0 +1,403 @@
+"""The phone-facing side of ``perfcap serve``: every network endpoint a phone talks to.
+
+* ``GET /`` the built-in phone page; ``GET /ws/phone`` its WebSocket (token in the first message);
+  ``POST /ingest/sensorlogger?token=...`` Sensor Logger's HTTP push. One aiohttp application, served
+  over HTTPS (browsers give motion sensors only to secure pages).
+* OSC (ZIG SIM, GyrOSC-style apps) and HyperIMU CSV over UDP, HyperIMU over TCP. These protocols
+  cannot carry a token, so they are off unless enabled, and then take only allow-listed sources.
+
+The gateway authenticates, bounds (message size, message rate, connections per host and in total)
+and stamps each message with its arrival time, then hands it as one ``Chunk`` to the phone's inbox
+(``devices.transports.network``); decoding happens in the phone's device reader, like any device.
+Refused input is counted by reason (``Rejections``) and never reaches a device. A ``PhoneRegistry``
+(the service) decides which device a phone is and creates it the first time it is seen.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import re
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any, Protocol
+
+from aiohttp import WSCloseCode, WSMsgType, web
+
+from capture.clock import MONOTONIC, Clock
+from capture.sample import Chunk, Direction
+from capture.serve.security import AllowList, RateLimit, Rejections, TokenStore
+from devices.transports.network import Inbox
+
+log = logging.getLogger(__name__)
+
+#: WebSocket close codes the page understands (see capture/serve/static/phone.html).
+CLOSE_MALFORMED = 4400
+CLOSE_TOKEN = 4401
+CLOSE_TOO_MANY = 4409
+CLOSE_SHUTDOWN = 4410
+CLOSE_TOO_LARGE = 4413
+CLOSE_RATE = 4429
+
+_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._\-]{0,63}$")
+
+
+class PhoneRegistry(Protocol):
+    def admit(self, protocol: str, remote_id: str, peer: str, info: dict[str, Any]) -> tuple[str, Inbox] | None:
+        """The (device name, connected inbox) for this phone, creating its device the first time;
+        None when no more phones are allowed."""
+
+
+@dataclass
+class Limits:
+    """Bounds per client. ``rate_hz`` and ``burst`` are messages per second per connection (UDP: per
+    source host)."""
+
+    max_message_bytes: int = 64 * 1024   # WebSocket and UDP messages
+    max_push_bytes: int = 4 << 20        # one Sensor Logger POST (a batch period of every sensor)
+    rate_hz: float = 200.0
+    burst: float = 400.0
+    max_connections: int = 32
+    max_connections_per_host: int = 4
+    hello_timeout_s: float = 5.0
+    max_malformed: int = 20        # per connection before it is closed
+    ping_s: float = 1.0
+
+
+@dataclass
+class GatewayStats:
+    connections: int = 0
+    accepted: int = 0
+    messages: int = 0
+    by_protocol: dict[str, int] = field(default_factory=dict)
+
+
+def page_html() -> bytes:
+    return resources.files("capture.serve").joinpath("static/phone.html").read_bytes()
+
+
+class Gateway:
+    """The phone endpoints. ``app()`` is the HTTPS application; ``start_udp``/``start_tcp`` open the
+    token-less protocols.
+
+    Args:
+        registry: maps phones to devices.
+        tokens: the pairing token.
+        limits: per-client bounds.
+        clock: stamps arrivals.
+    """
+
+    def __init__(self, registry: PhoneRegistry, tokens: TokenStore, limits: Limits | None = None,
+                 clock: Clock = MONOTONIC) -> None:
+        self.registry = registry
+        self.tokens = tokens
+        self.limits = limits or Limits()
+        self.clock = clock
+        self.rejected = Rejections()
+        self.stats = GatewayStats()
+        self._sockets: dict[str, tuple[web.WebSocketResponse, int]] = {}  # page id -> (ws, token generation)
+        self._per_host: dict[str, int] = {}
+        self._open = 0
+        self._servers: list[Any] = []
+        self._transports: list[Any] = []
+        self._closing = False
+        self._page = page_html()
+        self._http_limits: dict[str, RateLimit] = {}
+
+    # -- HTTPS application -----------------------------------------------------------------------
+    def app(self) -> web.Application:
+        app = web.Application(client_max_size=max(self.limits.max_message_bytes, self.limits.max_push_bytes))
+        app.router.add_get("/", self._page_handler)
+        app.router.add_get("/phone", self._page_handler)
+        app.router.add_get("/ws/phone", self._ws_phone)
+        app.router.add_post("/ingest/sensorlogger", self._sensorlogger)
+        return app
+
+    async def _page_handler(self, request: web.Request) -> web.Response:
+        return web.Response(body=self._page, content_type="text/html", charset="utf-8",
+                            headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer",
+                                     "X-Content-Type-Options": "nosniff"})
+
+    def _host_of(self, request: web.Request) -> str:
+        return request.remote or "?"
+
+    async def _ws_phone(self, request: web.Request) -> web.StreamResponse:
+        host = self._host_of(request)
+        lim = self.limits
+        if self._closing:
+            return web.Response(status=503, text="perfcap serve is shutting down\n")
+        if self._open >= lim.max_connections or self._per_host.get(host, 0) >= lim.max_connections_per_host:
+            self.rejected.count("too many connections", host)
+            return web.Response(status=503, text="too many connections\n")
+        ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, heartbeat=20.0, autoping=True,
+                                   compress=False)
+        await ws.prepare(request)
+        self._open += 1
+        self._per_host[host] = self._per_host.get(host, 0) + 1
+        self.stats.connections += 1
+        inbox: Inbox | None = None
+        phone_id = ""
+        ping_task: asyncio.Task[Any] | None = None
+        try:
+            hello = await self._hello(ws, host)
+            if hello is None:
+                return ws
+            phone_id, info = hello
+            admitted = self.registry.admit("page", phone_id, host, info)
+            if admitted is None:
+                self.rejected.count("too many phones", host)
+                await ws.close(code=CLOSE_TOO_MANY, message=b"too many phones on this service")
+                return ws
+            name, inbox = admitted
+            old = self._sockets.get(phone_id)
+            self._sockets[phone_id] = (ws, self.tokens.generation)
+            if old is not None and not old[0].closed:
+                await old[0].close(code=CLOSE_TOO_MANY, message=b"replaced by a newer connection of this phone")
+            t = self.clock.now_ns()
+            inbox.put(Chunk(json.dumps(info, separators=(",", ":")).encode(), t, Direction.RX))
+            await ws.send_str(json.dumps({"type": "welcome", "device": name, "ping_s": lim.ping_s}))
+            self.stats.accepted += 1
+            ping_task = asyncio.get_running_loop().create_task(self._pinger(ws))
+            await self._pump(ws, inbox, host)
+        finally:
+            if ping_task is not None:
+                ping_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await ping_task
+            self._open -= 1
+            n = self._per_host.get(host, 1) - 1
+            if n:
+                self._per_host[host] = n
+            else:
+                self._per_host.pop(host, None)
+            if phone_id and self._sockets.get(phone_id, (None,))[0] is ws:
+                del self._sockets[phone_id]
+                if inbox is not None:
+                    inbox.disconnect("the phone page closed its connection")
+        return ws
+
+    async def _hello(self, ws: web.WebSocketResponse, host: str) -> tuple[str, dict[str, Any]] | None:
+        try:
+            msg = await ws.receive(timeout=self.limits.hello_timeout_s)
+        except asyncio.TimeoutError:
+            self.rejected.count("no hello", host)
+            await ws.close(code=CLOSE_TOKEN, message=b"no hello with a pairing token")
+            return None
+        if msg.type is WSMsgType.ERROR or msg.type is WSMsgType.CLOSE or msg.type is WSMsgType.CLOSED:
+            if msg.type is WSMsgType.ERROR:
+                self.rejected.count("oversized or broken message", host, str(msg.data))
+            return None
+        if msg.type is not WSMsgType.TEXT:
+            self.rejected.count("malformed hello", host, "not text")
+            await ws.close(code=CLOSE_MALFORMED, message=b"the first message must be a JSON hello")
+            return None
+        try:
+            hello = json.loads(msg.data)
+        except ValueError:
+            hello = None
+        if not isinstance(hello, dict) or hello.get("type") != "hello":
+            self.rejected.count("malformed hello", host)
+            await ws.close(code=CLOSE_MALFORMED, message=b"the first message must be a JSON hello")
+            return None
+        if not self.tokens.check(hello.get("token")):
+            self.rejected.count("missing or wrong token", host)
+            await ws.close(code=CLOSE_TOKEN, message=b"missing or wrong pairing token")
+            return None
+        pid = hello.get("id")
+        if not isinstance(pid, str) or not _ID_RE.match(pid):
+            self.rejected.count("malformed hello", host, "bad id")
+            await ws.close(code=CLOSE_MALFORMED, message=b"hello.id must be 1-64 letters, digits, '.', '_' or '-'")
+            return None
+        info = {k: v for k, v in hello.items() if k != "token"}  # a session never holds the token
+        info["peer"] = host
+        return pid, info
+
+    async def _pinger(self, ws: web.WebSocketResponse) -> None:
+        while not ws.closed:
+            await asyncio.sleep(self.limits.ping_s)
+            with contextlib.suppress(ConnectionError, RuntimeError):
+                await ws.send_str('{"type":"ping","h":%d}' % self.clock.now_ns())
+
+    async def _pump(self, ws: web.WebSocketResponse, inbox: Inbox, host: str) -> None:
+        lim = self.limits
+        clock = self.clock
+        gen = self.tokens.generation
+        rate = RateLimit(lim.rate_hz, lim.burst, clock.now_ns())
+        malformed = 0
+        put = inbox.put
+        stats = self.stats
+        async for msg in ws:
+            t = clock.now_ns()
+            if msg.type is WSMsgType.TEXT:
+                if not rate.allow(t):
+                    self.rejected.count("message rate exceeded", host)
+                    await ws.close(code=CLOSE_RATE, message=b"message rate exceeded")
+                    break
+                if self.tokens.generation != gen:
+                    await ws.close(code=CLOSE_TOKEN, message=b"the pairing token was rotated; pair again")
+                    break
+                put(Chunk(msg.data.encode(), t, Direction.RX))
+                stats.messages += 1
+            elif msg.type is WSMsgType.BINARY:
+                malformed += 1
+                self.rejected.count("binary message", host)
+                if malformed > lim.max_malformed:
+                    await ws.close(code=CLOSE_MALFORMED, message=b"too many malformed messages")
+                    break
+            elif msg.type is WSMsgType.ERROR:
+                self.rejected.count("oversized or broken message", host, str(ws.exception()))
+                break
+        if ws.close_code == WSCloseCode.MESSAGE_TOO_BIG:
+            self.rejected.count("message too large", host)
+
+    async def close_phones(self, code: int, reason: str) -> None:
+        """Close every page socket (token rotation, shutdown)."""
+        for ws, _ in list(self._sockets.values()):
+            if not ws.closed:
+                with contextlib.suppress(Exception):
+                    await ws.close(code=code, message=reason.encode())
+
+    async def _sensorlogger(self, request: web.Request) -> web.Response:
+        host = self._host_of(request)
+        if not self.tokens.check(request.query.get("token")):
+            self.rejected.count("missing or wrong token", host, "sensorlogger")
+            return web.json_response({"error": "missing or wrong token: push to .../ingest/sensorlogger?token=..."},
+                                     status=401)
+        t = self.clock.now_ns()
+        rl = self._http_limits.get(host)
+        if rl is None:
+            if len(self._http_limits) > 4096:
+                self._http_limits.clear()
+            rl = self._http_limits[host] = RateLimit(self.limits.rate_hz, self.limits.burst, t)
+        if not rl.allow(t):
+            self.rejected.count("message rate exceeded", host, "sensorlogger")
+            return web.json_response({"error": "too many requests"}, status=429)
+        cap = self.limits.max_push_bytes
+        if request.content_length is not None and request.content_length > cap:
+            self.rejected.count("message too large", host, "sensorlogger")
+            return web.json_response({"error": f"body over {cap} bytes"}, status=413)
+        try:
+            body = await request.read()
+        except web.HTTPRequestEntityTooLarge:
+            self.rejected.count("message too large", host, "sensorlogger")
+            return web.json_response({"error": f"body over {cap} bytes"}, status=413)
+        if len(body) > cap:
+            self.rejected.count("message too large", host, "sensorlogger")
+            return web.json_response({"error": f"body over {cap} bytes"}, status=413)
+        t = self.clock.now_ns()
+        try:
+            obj = json.loads(body)
+            did = obj.get("deviceId") if isinstance(obj, dict) else None
+        except ValueError:
+            did = None
+        if not isinstance(did, str) or not did:
+            self.rejected.count("malformed message", host, "sensorlogger body without deviceId")
+            return web.json_response({"error": "expected Sensor Logger JSON with deviceId"}, status=400)
+        rid = re.sub(r"[^A-Za-z0-9._\-]", "-", did)[:64]
+        admitted = self.registry.admit("sensorlogger", rid, host, {"deviceId": did, "peer": host})
+        if admitted is None:
+            self.rejected.count("too many phones", host, "sensorlogger")
+            return web.json_response({"error": "too many phones on this service"}, status=503)
+        admitted[1].put(Chunk(body, t, Direction.RX))
+        self.stats.messages += 1
+        return web.json_response({"ok": True, "device": admitted[0]})
+
+    # -- token-less protocols --------------------------------------------------------------------
+    async def start_udp(self, protocol: str, host: str, port: int, allow: AllowList) -> int:
+        """Listen for ``protocol`` datagrams (``osc`` or ``hyperimu``); returns the bound port."""
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: _DatagramIngest(self, protocol, allow), local_addr=(host, port))
+        self._transports.append(transport)
+        return int(transport.get_extra_info("sockname")[1])
+
+    async def start_tcp(self, protocol: str, host: str, port: int, allow: AllowList) -> int:
+        """Listen for ``protocol`` over TCP (HyperIMU's TCP mode); returns the bound port."""
+        server = await asyncio.start_server(lambda r, w: self._tcp_client(protocol, allow, r, w), host, port,
+                                            limit=self.limits.max_message_bytes)
+        self._servers.append(server)
+        return int(server.sockets[0].getsockname()[1])
+
+    async def _tcp_client(self, protocol: str, allow: AllowList, reader: asyncio.StreamReader,
+                          writer: asyncio.StreamWriter) -> None:
+        host = str(writer.get_extra_info("peername")[0])
+        try:
+            if not allow.allows(host):
+                self.rejected.count("source not allow-listed", host, protocol)
+                return
+            admitted = self.registry.admit(protocol, host, host, {"peer": host})
+            if admitted is None:
+                self.rejected.count("too many phones", host, protocol)
+                return
+            inbox = admitted[1]
+            rate = RateLimit(self.limits.rate_hz * 4, self.limits.burst * 4, self.clock.now_ns())
+            while not self._closing:
+                data = await reader.read(self.limits.max_message_bytes)
+                if not data:
+                    break
+                t = self.clock.now_ns()
+                if not rate.allow(t):
+                    self.rejected.count("message rate exceeded", host, protocol)
+                    break
+                inbox.put(Chunk(data, t, Direction.RX))
+                self.stats.messages += 1
+            inbox.disconnect(f"{protocol} TCP connection from {host} closed")
+        except (ConnectionError, OSError) as exc:
+            log.info("%s TCP client %s: %s", protocol, host, exc)
+        finally:
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()
+
+    async def stop(self) -> None:
+        """Stop listening and close phone connections; what was received stays in the inboxes."""
+        self._closing = True
+        for t in self._transports:
+            t.close()
+        for s in self._servers:
+            s.close()
+        await self.close_phones(CLOSE_SHUTDOWN, "perfcap serve is shutting down")
+        for s in self._servers:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(s.wait_closed(), 2.0)
+
+
+class _DatagramIngest(asyncio.DatagramProtocol):
+    """One UDP port of a token-less protocol: allow-list, size and rate per source host."""
+
+    def __init__(self, gw: Gateway, protocol: str, allow: AllowList) -> None:
+        self.gw = gw
+        self.protocol = protocol
+        self.allow = allow
+        self._boxes: dict[str, tuple[Inbox, RateLimit]] = {}
+
+    def datagram_received(self, data: bytes, addr: tuple[Any, ...]) -> None:
+        gw = self.gw
+        host = str(addr[0])
+        t = gw.clock.now_ns()
+        entry = self._boxes.get(host)
+        if entry is None:
+            if not self.allow.allows(host):
+                gw.rejected.count("source not allow-listed", host, self.protocol)
+                return
+            admitted = gw.registry.admit(self.protocol, host, host, {"peer": host})
+            if admitted is None:
+                gw.rejected.count("too many phones", host, self.protocol)
+                return
+            entry = self._boxes[host] = (admitted[1], RateLimit(gw.limits.rate_hz, gw.limits.burst, t))
+        inbox, rate = entry
+        if len(data) > gw.limits.max_message_bytes:
+            gw.rejected.count("message too large", host, self.protocol)
+            return
+        if not rate.allow(t):
+            gw.rejected.count("message rate exceeded", host, self.protocol)
+            return
+        if not inbox.connected:
+            inbox.connect(host)
+        inbox.put(Chunk(data, t, Direction.RX))
+        gw.stats.messages += 1
+
+    def error_received(self, exc: Exception) -> None:
+        log.info("%s UDP: %s", self.protocol, exc)

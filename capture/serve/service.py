@@ -1,0 +1,487 @@
+"""``perfcap serve``: the long-running capture service.
+
+The service owns one ``Capture`` (bus, configured devices, recorder) and runs, in one asyncio loop:
+the phone gateway over HTTPS (page, WebSocket, Sensor Logger push), the optional token-less UDP/TCP
+ports, the control API on loopback, and mDNS (advertise ``_perfcap._tcp``, browse for SensorServer).
+Each phone becomes a device on the bus the first time it is seen (``PhoneDevices.admit``), under a
+name that stays the same when it reconnects.
+
+Shutdown (SIGTERM, Ctrl-C, ``stop()``) first stops listening, then lets every phone reader drain what
+was already received, then closes the bus, so the recorder writes everything that came in.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import os
+import re
+import socket
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+
+from aiohttp import web
+
+from capture import __version__
+from capture.clock import MONOTONIC, Clock
+from capture.errors import CaptureError, ConfigError
+from capture.pipeline import Capture
+from capture.serve.discovery import Discovery, FoundService
+from capture.serve.gateway import CLOSE_TOKEN, Gateway, Limits
+from capture.serve.security import AllowList, TokenStore
+from capture.serve.tls import Certificate, ensure_certificate
+from devices import DeviceSpec, ReconnectPolicy
+from devices.transports.network import Inbox, drop_hub, hub
+
+log = logging.getLogger(__name__)
+
+#: gateway protocol -> device kind
+PHONE_KINDS: dict[str, str] = {"page": "phone", "sensorlogger": "sensorlogger", "osc": "osc", "hyperimu": "hyperimu"}
+_NAME_PREFIX = {"page": "phone", "sensorlogger": "sl", "osc": "osc", "hyperimu": "himu"}
+_hub_ids = itertools.count()
+
+
+def default_state_dir(env: Mapping[str, str] | None = None) -> Path:
+    env = os.environ if env is None else env
+    base = env.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
+    return Path(base) / "perfcap" / "serve"
+
+
+def lan_address() -> str:
+    """The address other machines on the LAN most likely reach this one at (no packet is sent);
+    127.0.0.1 when there is no network."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.connect(("192.0.2.1", 9))  # TEST-NET-1: only picks the outgoing interface
+        return str(s.getsockname()[0])
+    except OSError:
+        return "127.0.0.1"
+    finally:
+        s.close()
+
+
+class PhoneDevices:
+    """Which device each phone is: created on first sight, the same one on every reconnect.
+
+    Args:
+        capture: the capture phones are added to.
+        hub_name: the hub their ``net://`` transports read from.
+        names: fixed device names by ``PROTOCOL/ID`` (e.g. ``{"page/5f2c...": "pocket"}``).
+        options: device options per protocol (e.g. the OSC address map).
+        max_phones: how many phones may be added.
+    """
+
+    def __init__(self, capture: Capture, hub_name: str, names: Mapping[str, str] | None = None,
+                 options: Mapping[str, Mapping[str, Any]] | None = None, max_phones: int = 32) -> None:
+        self.capture = capture
+        self.hub = hub(hub_name)
+        self.names = dict(names or {})
+        self.options = {k: dict(v) for k, v in (options or {}).items()}
+        self.max_phones = max_phones
+        self.devices: dict[str, str] = {}  # PROTOCOL/ID -> device name
+        self.peers: dict[str, str] = {}
+        self._lock = threading.Lock()
+
+    def _name_for(self, protocol: str, remote_id: str) -> str:
+        key = f"{protocol}/{remote_id}"
+        if key in self.names:
+            return self.names[key]
+        base = f"{_NAME_PREFIX[protocol]}-" + re.sub(r"[^A-Za-z0-9]", "", remote_id)[:8].lower()
+        if protocol in ("osc", "hyperimu"):
+            base = f"{_NAME_PREFIX[protocol]}-" + re.sub(r"[^A-Za-z0-9]", "_", remote_id)[:40]
+        taken = {d.name for d in self.capture.devices}
+        name, i = base, 2
+        while name in taken:
+            name, i = f"{base}-{i}", i + 1
+        return name
+
+    def admit(self, protocol: str, remote_id: str, peer: str, info: dict[str, Any]) -> tuple[str, Inbox] | None:
+        key = f"{protocol}/{remote_id}"
+        with self._lock:
+            box = self.hub.inbox(key)
+            name = self.devices.get(key)
+            if name is None:
+                if len(self.devices) >= self.max_phones:
+                    return None
+                name = self._name_for(protocol, remote_id)
+                box.connect(peer)  # before the reader's first open
+                box.info = dict(info)
+                spec = DeviceSpec(url=f"net://{self.hub.name}/{key}", kind=PHONE_KINDS[protocol], name=name,
+                                  options=dict(self.options.get(protocol, {})))
+                try:
+                    self.capture.add_device(spec)
+                except CaptureError as exc:
+                    log.error("phone %s (%s) cannot be added: %s", key, peer, exc)
+                    box.disconnect(str(exc))
+                    return None
+                self.devices[key] = name
+                log.warning("phone %s connected from %s: device %s", key, peer, name)
+            else:
+                if not box.connected:
+                    log.warning("phone %s (device %s) is back, from %s", key, name, peer)
+                box.connect(peer)
+                box.info = dict(info)
+            self.peers[name] = peer
+            return name, box
+
+
+@dataclass
+class ServeConfig:
+    """Everything ``perfcap serve`` listens on and how (``[serve]`` in the config; CLI flags)."""
+
+    host: str = "0.0.0.0"
+    port: int = 8443
+    tls: bool = True
+    public_host: str = ""           # the address phones use (URL, certificate); "" = detected
+    control_host: str = "127.0.0.1"
+    control_port: int = 8780
+    state_dir: str = ""             # token and certificate; "" = $XDG_DATA_HOME/perfcap/serve
+    token: str | None = None        # a fixed token (tests); None = the stored one
+    mdns: bool = True
+    mdns_interfaces: str = "all"    # "all" or comma-separated interface addresses
+    connect_sensorserver: bool = False
+    sensorserver_types: str = "accelerometer,gyroscope"
+    osc_port: int = 0               # 0 = off
+    osc_allow: str = ""
+    osc_map: str = "zigsim"
+    hyperimu_port: int = 0          # UDP; 0 = off
+    hyperimu_tcp_port: int = 0      # 0 = off
+    hyperimu_allow: str = ""
+    hyperimu_sensors: str = "accelerometer,gyroscope,magnetometer"
+    max_phones: int = 32
+    limits: Limits = field(default_factory=Limits)
+    names: dict[str, str] = field(default_factory=dict)
+    sessions_dir: str = "."
+
+    def check(self) -> None:
+        if not -1 <= self.control_port <= 65535:
+            raise ConfigError(f"control port {self.control_port} is not a port number (0-65535, or -1 for none)")
+        for port, what in ((self.port, "port"), (self.osc_port, "OSC port"),
+                           (self.hyperimu_port, "HyperIMU port"), (self.hyperimu_tcp_port, "HyperIMU TCP port")):
+            if not 0 <= port <= 65535:
+                raise ConfigError(f"{what} {port} is not a port number (0-65535)")
+        if self.osc_port and not AllowList(self.osc_allow):
+            raise ConfigError("OSC cannot carry a pairing token, so --osc-port needs --osc-allow with the phones' "
+                              "addresses (e.g. --osc-allow 192.168.1.23 or 192.168.1.0/24)")
+        if (self.hyperimu_port or self.hyperimu_tcp_port) and not AllowList(self.hyperimu_allow):
+            raise ConfigError("HyperIMU cannot carry a pairing token, so --hyperimu-port needs --hyperimu-allow with "
+                              "the phones' addresses (e.g. --hyperimu-allow 192.168.1.23)")
+
+
+@dataclass
+class Endpoints:
+    """Where the service listens, known once it runs."""
+
+    page_url: str = ""          # without the token
+    pair_url: str = ""          # with the token in the fragment
+    port: int = 0
+    control_url: str = ""
+    sensorlogger_url: str = ""
+    osc_port: int = 0
+    hyperimu_port: int = 0
+    hyperimu_tcp_port: int = 0
+    fingerprint: str = ""
+    certificate_created: bool = False
+    advertised: str | None = None
+    mdns_error: str | None = None
+
+
+class Service:
+    """The capture service (see the module docstring).
+
+    Args:
+        config: what to listen on.
+        devices: configured devices (any device string), started with the service.
+        reconnect: reconnect policy for every device.
+        clock: host clock.
+        capture_options: passed to ``Capture`` (recorder bounds and the like).
+    """
+
+    def __init__(self, config: ServeConfig, devices: Sequence[DeviceSpec | str] = (), *,
+                 reconnect: ReconnectPolicy = ReconnectPolicy(), clock: Clock = MONOTONIC,
+                 capture_options: Mapping[str, Any] | None = None) -> None:
+        config.check()
+        self.config = config
+        self.clock = clock
+        self.state_dir = Path(config.state_dir) if config.state_dir else default_state_dir()
+        self.tokens = TokenStore(self.state_dir, config.token)
+        self.capture = Capture(list(devices), allow_empty=True, reconnect=reconnect, clock=clock,
+                               **dict(capture_options or {}))
+        self.hub_name = f"serve{next(_hub_ids)}"
+        opts: dict[str, dict[str, Any]] = {"osc": {"map": config.osc_map},
+                                           "hyperimu": {"sensors": config.hyperimu_sensors}}
+        self.phones = PhoneDevices(self.capture, self.hub_name, config.names, opts, config.max_phones)
+        self.gateway = Gateway(self.phones, self.tokens, config.limits, clock)
+        self.endpoints = Endpoints()
+        self.discovery: Discovery | None = None
+        self.certificate: Certificate | None = None
+        self._runners: list[web.AppRunner] = []
+        self._stop: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._t0 = 0
+        self.stopped = False
+        self.report: Any = None
+
+    # -- control ---------------------------------------------------------------------------------
+    def start_recording(self, path: str | None = None, overwrite: bool = False) -> str:
+        if path is None:
+            stamp = int(MONOTONIC.wall_time_s())
+            path = os.path.join(self.config.sessions_dir, f"perfcap-{stamp}.mcap")
+        self.capture.start_recording(path, overwrite=overwrite, meta={"command": "perfcap serve"})
+        log.warning("recording to %s", path)
+        return path
+
+    def stop_recording(self) -> dict[str, Any]:
+        res = self.capture.stop_recording()
+        log.warning("recording %s closed", res["output"])
+        return res
+
+    async def rotate_token(self) -> str:
+        tok = self.tokens.rotate()
+        await self.gateway.close_phones(CLOSE_TOKEN, "the pairing token was rotated; pair again")
+        self._update_urls()
+        return tok
+
+    def devices_info(self) -> list[dict[str, Any]]:
+        snap = self.capture.stats.snapshot()
+        now = self.clock.now_ns()
+        out = []
+        for d in list(self.capture.devices):
+            h = d.health()
+            streams = {s.name: snap.get(s.name, {"samples": 0, "rate_hz": 0.0, "drops": 0}) for s in d.streams}
+            box = self.phones.hub.get(getattr(d.transport, "key", "")) if d.transport.scheme == "net" else None
+            clocks = []
+            for cs in d.clock_states():
+                clocks.append({"stream": cs.stream, "offset_ms": (cs.host_ref_ns - cs.device_ref_ns) / 1e6,
+                               "drift_ppm": round(cs.drift_ppm, 2), "epoch": cs.epoch, "pseudo": cs.pseudo,
+                               "points": cs.points})
+            last = h.get("last_seen_ns")
+            out.append({
+                "name": d.name, "kind": d.kind, "url": d.transport.url, "state": h["state"],
+                "connected": None if box is None else box.connected, "peer": self.phones.peers.get(d.name),
+                "rate_hz": max((s["rate_hz"] for s in streams.values()), default=0.0),
+                "samples": sum(s["samples"] for s in streams.values()),
+                "drops": {"lost_readings": h.get("lost_readings", 0), "stream_gaps": sum(s["drops"] for s in streams.values()),
+                          "protocol_errors": h.get("checksum_errors", 0) + h.get("framing_errors", 0),
+                          "queue_refused": 0 if box is None else box.dropped},
+                "clock": clocks,
+                "last_seen_s_ago": None if last is None else round((now - last) / 1e9, 3),
+                "reconnects": h.get("reconnects", 0),
+                "streams": streams,
+            })
+        return out
+
+    def health(self) -> dict[str, Any]:
+        return {"status": "ok" if not self.stopped else "stopping", "version": __version__,
+                "uptime_s": round((self.clock.now_ns() - self._t0) / 1e9, 3) if self._t0 else 0.0,
+                "recording": self.capture.output if self.capture.recorder is not None else None,
+                "devices": len(self.capture.devices),
+                "phones_connected": sum(1 for b in self.phones.hub.inboxes().values() if b.connected),
+                "messages": self.gateway.stats.messages, "rejected": self.gateway.rejected.as_dict(),
+                "token_required": True, "tls_fingerprint": self.endpoints.fingerprint,
+                "mdns": {"advertised": self.endpoints.advertised, "error": self.endpoints.mdns_error,
+                         "found": [f.as_dict() for f in (self.discovery.found.values() if self.discovery else [])]}}
+
+    def add_sensorserver(self, host: str, port: int, types: str | None = None, name: str | None = None) -> str:
+        """Connect to a SensorServer phone (found by mDNS or given by the user); returns the device name."""
+        types = types or self.config.sensorserver_types
+        h = f"[{host}]" if ":" in host else host
+        dev = self.capture.add_device(DeviceSpec(url=f"sensorserver://{h}:{int(port)}?types={types}",
+                                                 kind="sensorserver", name=name))
+        log.warning("SensorServer %s:%d: device %s", host, port, dev.name)
+        return dev.name
+
+    def _on_found(self, found: FoundService) -> None:
+        if not found.is_sensorserver:
+            return
+        if not self.config.connect_sensorserver:
+            log.warning("found %s at %s:%d; connect with POST /api/sensorserver (or serve --connect-sensorserver)",
+                        found.name, found.addresses[0] if found.addresses else "?", found.port)
+            return
+        if found.addresses:
+            with contextlib.suppress(CaptureError):
+                self.add_sensorserver(found.addresses[0], found.port)
+
+    # -- running ---------------------------------------------------------------------------------
+    def _update_urls(self) -> None:
+        ep = self.endpoints
+        if ep.page_url:
+            ep.pair_url = f"{ep.page_url}#t={self.tokens.token}"
+            scheme = "https" if self.config.tls else "http"
+            host = ep.page_url.split("://", 1)[1].split("/", 1)[0]
+            ep.sensorlogger_url = f"{scheme}://{host}/ingest/sensorlogger?token={self.tokens.token}"
+
+    async def start(self) -> Endpoints:
+        """Start listening (and the configured devices).
+
+        Raises:
+            ConfigError: a port is taken, or the certificate cannot be made.
+        """
+        from capture.serve.control import control_app
+
+        cfg = self.config
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        self._t0 = self.clock.now_ns()
+        public = cfg.public_host or (lan_address() if cfg.host in ("0.0.0.0", "::", "") else cfg.host)
+        ssl_ctx = None
+        if cfg.tls:
+            self.certificate = ensure_certificate(self.state_dir, [public])
+            ssl_ctx = self.certificate.server_context()
+            self.endpoints.fingerprint = self.certificate.fingerprint
+            self.endpoints.certificate_created = self.certificate.created
+        self.capture.start()
+        try:
+            port = await self._site(self.gateway.app(), cfg.host, cfg.port, ssl_ctx, "phone page")
+            scheme = "https" if cfg.tls else "http"
+            self.endpoints.port = port
+            self.endpoints.page_url = f"{scheme}://{public}:{port}/"
+            self._update_urls()
+            if cfg.control_port >= 0:
+                cport = await self._site(control_app(self), cfg.control_host, cfg.control_port, None, "control API")
+                self.endpoints.control_url = f"http://{cfg.control_host}:{cport}/api"
+                if cfg.control_host not in ("127.0.0.1", "::1", "localhost"):
+                    log.warning("the control API listens on %s, not only on this machine; it still needs the token",
+                                cfg.control_host)
+            if cfg.osc_port:
+                self.endpoints.osc_port = await self._bind(self.gateway.start_udp("osc", cfg.host, cfg.osc_port,
+                                                                                  AllowList(cfg.osc_allow)), "OSC")
+            if cfg.hyperimu_port:
+                self.endpoints.hyperimu_port = await self._bind(self.gateway.start_udp(
+                    "hyperimu", cfg.host, cfg.hyperimu_port, AllowList(cfg.hyperimu_allow)), "HyperIMU UDP")
+            if cfg.hyperimu_tcp_port:
+                self.endpoints.hyperimu_tcp_port = await self._bind(self.gateway.start_tcp(
+                    "hyperimu", cfg.host, cfg.hyperimu_tcp_port, AllowList(cfg.hyperimu_allow)), "HyperIMU TCP")
+            if cfg.mdns:
+                props = {"v": __version__, "port": str(port), "token": "1", "path": "/",
+                         "tls": "1" if cfg.tls else "0"}
+                ifaces: Any = "all" if cfg.mdns_interfaces == "all" else [
+                    i.strip() for i in cfg.mdns_interfaces.split(",") if i.strip()]
+                self.discovery = Discovery(None, [public], port, props, interfaces=ifaces, on_found=self._on_found)
+                await self.discovery.start()
+                self.endpoints.advertised = self.discovery.advertised
+                self.endpoints.mdns_error = self.discovery.error
+        except BaseException:
+            await self._close_network()
+            self.capture.stop()
+            raise
+        return self.endpoints
+
+    async def _bind(self, coro: Any, what: str) -> int:
+        try:
+            return int(await coro)
+        except OSError as exc:
+            raise ConfigError(f"cannot listen for {what}: {exc}") from None
+
+    async def _site(self, app: web.Application, host: str, port: int, ssl_ctx: Any, what: str) -> int:
+        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
+        await runner.setup()
+        self._runners.append(runner)
+        site = web.TCPSite(runner, host, port, ssl_context=ssl_ctx, backlog=128)
+        try:
+            await site.start()
+        except OSError as exc:
+            raise ConfigError(f"cannot listen for the {what} on {host}:{port}: {exc.strerror or exc} "
+                              f"(choose another port)") from None
+        server = site._server  # the bound socket tells the real port when 0 was asked for
+        socks = getattr(server, "sockets", None) or []
+        return int(socks[0].getsockname()[1]) if socks else port
+
+    def request_stop(self) -> None:
+        """Ask a running service to stop (thread-safe)."""
+        loop = self._loop
+        if loop is not None and self._stop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._stop.set)
+            except RuntimeError:  # the loop closed in between: the service has stopped already
+                pass
+
+    async def wait(self) -> None:
+        assert self._stop is not None
+        await self._stop.wait()
+
+    async def _close_network(self) -> None:
+        with contextlib.suppress(Exception):
+            await self.gateway.stop()
+        if self.discovery is not None:
+            await self.discovery.stop()
+        for r in self._runners:
+            with contextlib.suppress(Exception):
+                await r.cleanup()
+        self._runners = []
+
+    async def stop(self) -> Any:
+        """Stop listening, drain what phones sent, stop devices, close the recording. Returns the
+        capture report."""
+        if self.stopped:
+            return self.report
+        self.stopped = True
+        await self._close_network()
+        box_hub = self.phones.hub
+        box_hub.finish_all()  # readers drain their inboxes, then end
+        readers = [r for r in self.capture.readers if getattr(r.device.transport, "scheme", "") == "net"]
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(None, lambda: [r.join(10.0) for r in readers])
+        self.report = await loop.run_in_executor(None, self.capture.stop)
+        drop_hub(self.hub_name)
+        return self.report
+
+    async def run(self, on_ready: Callable[[Service], None] | None = None) -> Any:
+        """Start, wait until ``request_stop()`` (or a signal handler) says stop, then stop."""
+        try:
+            await self.start()
+            if on_ready is not None:
+                on_ready(self)
+            await self.wait()
+        finally:
+            report = await self.stop()
+        return report
+
+
+class ServiceThread:
+    """A service on its own event loop in a background thread (the demo and tests use it).
+
+    ``start()`` returns once it listens (or raises what stopped it); ``stop()`` stops it gracefully.
+    """
+
+    def __init__(self, service: Service) -> None:
+        self.service = service
+        self._ready = threading.Event()
+        self.error: BaseException | None = None
+        self.report: Any = None
+        self._thread = threading.Thread(target=self._main, name="perfcap-serve", daemon=True)
+
+    def _main(self) -> None:
+        async def body() -> None:
+            try:
+                self.report = await self.service.run(on_ready=lambda s: self._ready.set())
+            finally:
+                self._ready.set()
+
+        try:
+            asyncio.run(body())
+        except BaseException as exc:  # noqa: BLE001 - handed to the starting thread
+            self.error = exc
+            self._ready.set()
+
+    def start(self, timeout: float = 20.0) -> ServiceThread:
+        self._thread.start()
+        if not self._ready.wait(timeout):
+            raise CaptureError("perfcap serve did not start in time")
+        if self.error is not None:
+            raise self.error
+        return self
+
+    def stop(self, timeout: float = 30.0) -> Any:
+        if not self._thread.is_alive():
+            return self.report
+        self.service.request_stop()
+        self._thread.join(timeout)
+        if self.error is not None and not isinstance(self.error, CaptureError):
+            raise self.error
+        return self.report

@@ -1,0 +1,307 @@
+"""Network transports: phones that stream to perfcap, and phones perfcap connects to.
+
+``net://HUB/PROTOCOL/ID`` is the transport of a phone that *sends to* perfcap (the built-in page over
+a WebSocket, Sensor Logger's HTTP push, OSC or HyperIMU datagrams). The network side lives in
+``perfcap serve`` (``capture.serve.gateway``): it authenticates each message, stamps it with the host
+monotonic time of its arrival and puts it, as one ``Chunk``, into the phone's ``Inbox`` on a ``Hub``.
+The phone's device reader takes chunks out through this transport, like bytes from a serial port.
+A phone that drops off (socket closed) makes ``read`` fail once its queued messages are drained, so
+the reader's reconnect policy applies unchanged: the phone comes back under the same device, stream
+names and sequence numbering when it reconnects with the same id.
+
+``sensorserver://HOST:PORT?types=...`` is the other direction: the Android SensorServer app *is* a
+WebSocket server, and this transport is its client (``websockets``' synchronous client, one per
+device thread). Every text frame is one chunk.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from typing import Any, ClassVar
+
+from capture.clock import MONOTONIC, Clock
+from capture.errors import ConfigError, DeviceInitError, DeviceIOError, DeviceNotFoundError, EndOfStream
+from capture.sample import Chunk, Direction
+from devices.codecs.phone_apps import SENSORSERVER_CLOSE_CODES, sensorserver_path
+from devices.options import Option
+from devices.transports.base import Transport
+
+log = logging.getLogger(__name__)
+
+
+class Inbox:
+    """Messages received for one remote device, waiting for its reader thread.
+
+    Bounded: a reader that cannot keep up makes ``put`` refuse (counted in ``dropped`` and logged),
+    never an unbounded queue.
+    """
+
+    def __init__(self, key: str, max_chunks: int = 65536) -> None:
+        self.key = key
+        self.max_chunks = max_chunks
+        self._q: collections.deque[Chunk] = collections.deque()
+        self._cv = threading.Condition(threading.Lock())
+        self._waiting = False
+        self.connected = False
+        self.finished = False
+        self.peer: str | None = None
+        self.reason = "not connected yet"
+        self.received = 0
+        self.dropped = 0
+        self.connects = 0
+        self.info: dict[str, Any] = {}
+
+    def connect(self, peer: str | None) -> None:
+        """The remote end is there (a socket opened, a first datagram came)."""
+        with self._cv:
+            self.connected = True
+            self.finished = False
+            self.peer = peer
+            self.connects += 1
+            self._cv.notify_all()
+
+    def disconnect(self, reason: str) -> None:
+        """The remote end went away; the reader sees it after draining what was received."""
+        with self._cv:
+            self.connected = False
+            self.reason = reason
+            self._cv.notify_all()
+
+    def finish(self) -> None:
+        """No more messages will come (the service is shutting down): the reader drains and ends."""
+        with self._cv:
+            self.finished = True
+            self.connected = False
+            self.reason = "the service stopped"
+            self._cv.notify_all()
+
+    def put(self, chunk: Chunk) -> bool:
+        """Queue a received message; False (counted) when the queue is full."""
+        with self._cv:
+            if len(self._q) >= self.max_chunks:
+                self.dropped += 1
+                if self.dropped == 1 or self.dropped % 1000 == 0:
+                    log.error("%s: reader too slow, %d message(s) refused so far (queue of %d full)",
+                              self.key, self.dropped, self.max_chunks)
+                return False
+            self._q.append(chunk)
+            self.received += 1
+            if self._waiting:
+                self._cv.notify()
+            return True
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+    def get(self, timeout: float) -> Chunk | None:
+        """The next message, or None after ``timeout`` seconds.
+
+        Raises:
+            EndOfStream: the inbox was finished and is empty.
+            DeviceIOError: the remote end is disconnected and everything it sent has been read.
+        """
+        with self._cv:
+            q = self._q
+            if q:
+                return q.popleft()
+            if self.finished:
+                raise EndOfStream(f"{self.key}: {self.reason}", source=self.key)
+            if not self.connected:
+                raise DeviceIOError(f"{self.key}: {self.reason}", source=self.key)
+            self._waiting = True
+            try:
+                self._cv.wait(timeout)
+            finally:
+                self._waiting = False
+            if q:
+                return q.popleft()
+            if self.finished:
+                raise EndOfStream(f"{self.key}: {self.reason}", source=self.key)
+            if not self.connected:
+                raise DeviceIOError(f"{self.key}: {self.reason}", source=self.key)
+            return None
+
+
+class Hub:
+    """The inboxes of one service, by ``PROTOCOL/ID``."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._boxes: dict[str, Inbox] = {}
+        self._lock = threading.Lock()
+
+    def inbox(self, key: str) -> Inbox:
+        with self._lock:
+            box = self._boxes.get(key)
+            if box is None:
+                box = self._boxes[key] = Inbox(f"{self.name}/{key}")
+            return box
+
+    def get(self, key: str) -> Inbox | None:
+        return self._boxes.get(key)
+
+    def inboxes(self) -> dict[str, Inbox]:
+        with self._lock:
+            return dict(self._boxes)
+
+    def finish_all(self) -> None:
+        for box in self.inboxes().values():
+            box.finish()
+
+
+_HUBS: dict[str, Hub] = {}
+_HUBS_LOCK = threading.Lock()
+
+
+def hub(name: str) -> Hub:
+    """The process-wide hub called ``name`` (created on first use)."""
+    with _HUBS_LOCK:
+        h = _HUBS.get(name)
+        if h is None:
+            h = _HUBS[name] = Hub(name)
+        return h
+
+
+def drop_hub(name: str) -> None:
+    with _HUBS_LOCK:
+        _HUBS.pop(name, None)
+
+
+class NetTransport(Transport):
+    """A phone that streams to ``perfcap serve``: ``net://HUB/PROTOCOL/ID``."""
+
+    scheme = "net"
+    usage = "net://HUB/PROTOCOL/ID  (e.g. net://serve/page/6f1c...; made by perfcap serve for each phone)"
+    options: ClassVar[dict[str, Option]] = {}
+
+    def __init__(self, address: str, options: dict[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
+        super().__init__(address, options, clock)
+        parts = address.split("/", 2)
+        if len(parts) != 3 or not all(parts):
+            raise ConfigError(f"invalid net:// address {address!r}; expected {self.usage}", source=address)
+        self.hub_name, self.protocol, self.remote_id = parts
+        self._box: Inbox | None = None
+
+    @property
+    def key(self) -> str:
+        return f"{self.protocol}/{self.remote_id}"
+
+    def identity_hint(self) -> dict[str, Any]:
+        return {"serial": self.remote_id, "address": self.key}
+
+    def present(self) -> bool | None:
+        box = hub(self.hub_name).get(self.key)
+        # finished counts as present: the reader then opens at once and learns that the source ended
+        return bool(box is not None and (box.connected or box.finished))
+
+    def open(self) -> None:
+        box = hub(self.hub_name).inbox(self.key)
+        if box.finished:
+            raise EndOfStream(f"{self.key}: {box.reason}", source=self.url)
+        if not box.connected and not len(box):
+            raise DeviceNotFoundError(f"phone {self.key} is not connected ({box.reason})", source=self.url)
+        self._box = box
+
+    def close(self) -> None:
+        self._box = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._box is not None
+
+    def read(self, timeout: float) -> Chunk | None:
+        box = self._box
+        if box is None:
+            raise DeviceIOError(f"{self.url}: not open", source=self.url)
+        return box.get(timeout)
+
+
+# -- SensorServer: perfcap is the WebSocket client ------------------------------------------------
+
+class SensorServerTransport(Transport):
+    """The SensorServer app's WebSocket server on a phone: ``sensorserver://HOST:PORT?types=a,b``."""
+
+    scheme = "sensorserver"
+    usage = "sensorserver://HOST:PORT?types=accelerometer,gyroscope"
+    options: ClassVar[dict[str, Option]] = {
+        "types": Option(str, "accelerometer,gyroscope", "sensors to subscribe to (Android sensor type names)"),
+        "open_timeout": Option(float, 5.0, "seconds to wait for the phone to accept the connection", min=0.1,
+                               max=120.0),
+        "max_message": Option(int, 65536, "largest message accepted, bytes", min=256, max=16 << 20),
+    }
+
+    def __init__(self, address: str, options: dict[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
+        super().__init__(address, options, clock)
+        host, sep, port = address.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ConfigError(f"invalid sensorserver:// address {address!r}; expected {self.usage}", source=address)
+        self.host = host.strip("[]")
+        self.port = int(port)
+        self.types = [t.strip() for t in str(self.opts["types"]).split(",") if t.strip()]
+        try:
+            self.path = sensorserver_path(self.types)
+        except ValueError as exc:
+            raise ConfigError(f"{self.url}: {exc}; expected {self.usage}", source=self.url) from None
+        self._ws: Any = None
+
+    def implied_kind(self) -> str | None:
+        return "sensorserver"
+
+    def implied_device_options(self) -> dict[str, Any]:
+        return {"types": ",".join(self.types)}
+
+    def identity_hint(self) -> dict[str, Any]:
+        return {"address": f"{self.host}:{self.port}"}
+
+    @property
+    def ws_url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}{self.path}"
+
+    def open(self) -> None:
+        from websockets.exceptions import InvalidHandshake, InvalidURI, WebSocketException
+        from websockets.sync.client import connect
+
+        try:
+            self._ws = connect(self.ws_url, open_timeout=self.opts["open_timeout"],
+                               max_size=self.opts["max_message"], compression=None)
+        except (ConnectionRefusedError, TimeoutError) as exc:
+            raise DeviceNotFoundError(f"SensorServer at {self.host}:{self.port} does not answer ({exc}); is the app's"
+                                      " server started and the phone on this network?", source=self.url) from exc
+        except (OSError, InvalidURI, InvalidHandshake, WebSocketException) as exc:
+            raise DeviceInitError(f"SensorServer at {self.host}:{self.port}: {exc}", source=self.url) from exc
+
+    def close(self) -> None:
+        ws, self._ws = self._ws, None
+        if ws is not None:
+            try:
+                ws.close()
+            except Exception:  # noqa: BLE001 - closing a dead socket must not fail the reader
+                log.debug("sensorserver close failed", exc_info=True)
+
+    @property
+    def is_open(self) -> bool:
+        return self._ws is not None
+
+    def read(self, timeout: float) -> Chunk | None:
+        from websockets.exceptions import ConnectionClosed
+
+        ws = self._ws
+        if ws is None:
+            raise DeviceIOError(f"{self.url}: not open", source=self.url)
+        try:
+            msg = ws.recv(timeout=timeout)
+        except TimeoutError:
+            return None
+        except ConnectionClosed as exc:
+            code = exc.rcvd.code if exc.rcvd is not None else None
+            why = SENSORSERVER_CLOSE_CODES.get(code or 0, exc.rcvd.reason if exc.rcvd else "connection lost")
+            raise DeviceIOError(f"SensorServer at {self.host}:{self.port} closed the connection"
+                                f"{f' ({code})' if code else ''}: {why}", source=self.url) from exc
+        except OSError as exc:
+            raise DeviceIOError(f"SensorServer at {self.host}:{self.port}: {exc}", source=self.url) from exc
+        t = self.clock.now_ns()
+        data = msg.encode() if isinstance(msg, str) else bytes(msg)
+        return Chunk(data, t, Direction.RX)

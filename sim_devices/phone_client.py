@@ -1,0 +1,262 @@
+"""Simulated phones on the network: they talk to ``perfcap serve`` through its real endpoints.
+
+* ``SimPagePhone``: the built-in page, as a phone browser would run it: a WebSocket over TLS to
+  ``/ws/phone`` (the service's self-signed certificate pinned by fingerprint, or not checked),
+  hello with the pairing token, then the page's data messages (``sim_devices.phone_sim``) at the
+  page's own pace, and an answer to every ping. ``truth_ns`` maps each event's page time to the
+  host clock, so a test or the demo can measure the bus-time error.
+* ``post_sensorlogger`` / ``send_udp``: Sensor Logger pushes and OSC/HyperIMU datagrams.
+
+``perfcap sim phone --url wss://HOST:PORT/ws/phone --token T`` runs a ``SimPagePhone`` from the
+command line (another terminal, another machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import socket
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from capture.clock import MONOTONIC, Clock
+from sim_devices.phone_sim import page_hello, page_messages, page_pong
+
+log = logging.getLogger(__name__)
+
+
+def _ssl_arg(fingerprint: str | None, url: str) -> Any:
+    import aiohttp
+
+    if not url.startswith(("wss:", "https:")):
+        return None
+    if fingerprint:
+        return aiohttp.Fingerprint(bytes.fromhex(fingerprint.replace(":", "")))
+    return False  # a simulator on loopback: no check (the real page's browser asks the user)
+
+
+class SimPagePhone:
+    """A phone running the built-in page.
+
+    Args:
+        url: ``wss://HOST:PORT/ws/phone``.
+        token: the pairing token (``None``: send none, to test refusal).
+        phone_id: the page's stable id.
+        rate_hz: devicemotion rate.
+        duration_s: how long it streams (None: until ``stop()``, in 60 s blocks of motion).
+        seed: motion seed.
+        fingerprint: the service's certificate SHA-256, pinned when given.
+        drop_at_s: close the socket this many seconds in (a Wi-Fi drop); the page reconnects after
+            ``drop_for_s`` and resends what it queued meanwhile, as the real page does.
+        clock: host clock (for ``truth_ns``).
+    """
+
+    def __init__(self, url: str, token: str | None, phone_id: str = "sim-phone", *, rate_hz: float = 60.0,
+                 duration_s: float | None = 10.0, seed: int = 1, fingerprint: str | None = None,
+                 drop_at_s: float | None = None, drop_for_s: float = 0.5, batch_s: float = 0.05,
+                 clock: Clock = MONOTONIC) -> None:
+        self.url = url
+        self.token = token
+        self.phone_id = phone_id
+        self.rate_hz = rate_hz
+        self.duration_s = duration_s
+        self.seed = seed
+        self.fingerprint = fingerprint
+        self.drop_at_s = drop_at_s
+        self.drop_for_s = drop_for_s
+        self.batch_s = batch_s
+        self.clock = clock
+        self.sent = 0
+        self.events = 0
+        self.pongs = 0
+        self.device: str | None = None
+        self.close_code: int | None = None
+        self.close_reason = ""
+        self.connects = 0
+        self.t0_host_ns: int | None = None
+        self.t0_ms = 1500.0
+        self._stop = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.error: BaseException | None = None
+
+    def page_ms(self) -> float:
+        assert self.t0_host_ns is not None
+        return self.t0_ms + (self.clock.now_ns() - self.t0_host_ns) / 1e6
+
+    def truth_ns(self, page_t_ms: Any) -> Any:
+        """Host time at which an event with page time ``page_t_ms`` happened."""
+        assert self.t0_host_ns is not None
+        return self.t0_host_ns + (page_t_ms - self.t0_ms) * 1e6
+
+    async def _connect(self, session: Any) -> Any:
+        ws = await session.ws_connect(self.url, ssl=_ssl_arg(self.fingerprint, self.url), autoping=True,
+                                      heartbeat=None, max_msg_size=1 << 20)
+        self.connects += 1
+        await ws.send_str(page_hello(self.phone_id, token=self.token, t=self.page_ms()).decode())
+        msg = await ws.receive(timeout=10)
+        if msg.type.name != "TEXT":
+            self.close_code = ws.close_code
+            self.close_reason = str(msg.extra or "")
+            await ws.close()
+            return None
+        welcome = json.loads(msg.data)
+        self.device = welcome.get("device")
+        return ws
+
+    async def _answer(self, ws: Any) -> None:
+        async for msg in ws:
+            if msg.type.name != "TEXT":
+                break
+            try:
+                m = json.loads(msg.data)
+            except ValueError:
+                continue
+            if m.get("type") == "ping":
+                await ws.send_str(page_pong(int(m["h"]), self.page_ms()).decode())
+                self.pongs += 1
+        if ws.close_code is not None:
+            self.close_code = ws.close_code
+
+    async def run(self) -> None:
+        import aiohttp
+
+        self._loop = asyncio.get_running_loop()
+        self.t0_host_ns = self.clock.now_ns()
+        total = self.duration_s if self.duration_s is not None else 3600.0
+        msgs = page_messages(total, self.rate_hz, batch_s=self.batch_s, seed=self.seed, t0_ms=self.t0_ms)
+        self.messages = msgs
+        async with aiohttp.ClientSession() as session:
+            ws = await self._connect(session)
+            if ws is None:
+                return
+            reader = asyncio.get_running_loop().create_task(self._answer(ws))
+            dropped = False
+            queue: list[bytes] = []
+            try:
+                for m in msgs:
+                    wait = (m.sent_ms - self.page_ms()) / 1e3
+                    if wait > 0:
+                        with contextlib.suppress(asyncio.TimeoutError):
+                            await asyncio.wait_for(self._stop.wait(), wait)
+                    if self._stop.is_set():
+                        break
+                    if (self.drop_at_s is not None and not dropped
+                            and m.sent_ms - self.t0_ms >= self.drop_at_s * 1e3):
+                        dropped = True
+                        await ws.close()
+                        reader.cancel()
+                        back_at = m.sent_ms + self.drop_for_s * 1e3
+                        ws = None
+                        queue.append(m.data)
+                        while self.page_ms() < back_at:
+                            await asyncio.sleep(0.01)
+                        ws = await self._connect(session)
+                        if ws is None:
+                            return
+                        reader = asyncio.get_running_loop().create_task(self._answer(ws))
+                        continue
+                    if ws.closed:
+                        self.close_code = ws.close_code
+                        break
+                    for q in queue:  # what was queued while away, first
+                        await ws.send_str(q.decode())
+                        self.sent += 1
+                    queue.clear()
+                    await ws.send_str(m.data.decode())
+                    self.sent += 1
+                    self.events += len(m.frame.motion)
+            finally:
+                if ws is not None and not ws.closed:
+                    await ws.close()
+                reader.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await reader
+
+    def stop(self) -> None:
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+
+
+class PhoneThread:
+    """Runs a simulated phone's ``run()`` on its own event loop in a thread."""
+
+    def __init__(self, phone: SimPagePhone) -> None:
+        self.phone = phone
+        self._thread = threading.Thread(target=self._main, name=f"sim-{phone.phone_id}", daemon=True)
+
+    def _main(self) -> None:
+        try:
+            asyncio.run(self.phone.run())
+        except BaseException as exc:  # noqa: BLE001 - reported by join()
+            self.phone.error = exc
+            log.warning("simulated phone %s stopped: %s: %s", self.phone.phone_id, type(exc).__name__, exc)
+
+    def start(self) -> PhoneThread:
+        self._thread.start()
+        return self
+
+    def join(self, timeout: float | None = None) -> bool:
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self.phone.stop()
+        self._thread.join(timeout)
+
+
+def post_sensorlogger(url: str, body: bytes, fingerprint: str | None = None, timeout: float = 10.0) -> tuple[int, Any]:
+    """POST one Sensor Logger body (``url`` includes ``?token=``); returns (status, JSON answer)."""
+    import aiohttp
+
+    async def go() -> tuple[int, Any]:
+        async with aiohttp.ClientSession() as s:
+            async with s.post(url, data=body, ssl=_ssl_arg(fingerprint, url),
+                              headers={"Content-Type": "application/json"},
+                              timeout=aiohttp.ClientTimeout(total=timeout)) as r:
+                try:
+                    return r.status, await r.json(content_type=None)
+                except ValueError:
+                    return r.status, None
+
+    return asyncio.run(go())
+
+
+def send_udp(host: str, port: int, datagrams: Sequence[bytes], source: str = "127.0.0.1") -> int:
+    """Send datagrams from ``source``; returns how many were sent."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((source, 0))
+        for d in datagrams:
+            s.sendto(d, (host, port))
+    return len(datagrams)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="perfcap sim phone",
+                                description="a simulated phone running perfcap's page, streaming to perfcap serve")
+    p.add_argument("--url", required=True, help="wss://HOST:PORT/ws/phone (as printed by perfcap serve)")
+    p.add_argument("--token", required=True, help="the pairing token printed by perfcap serve")
+    p.add_argument("--fingerprint", help="the certificate fingerprint printed by perfcap serve (pinned)")
+    p.add_argument("--id", default="sim-phone", help="the phone's id")
+    p.add_argument("--rate", type=float, default=60.0, help="devicemotion rate, Hz")
+    p.add_argument("--duration", type=float, default=30.0, help="seconds")
+    p.add_argument("--seed", type=int, default=1)
+    a = p.parse_args(argv)
+    phone = SimPagePhone(a.url, a.token, a.id, rate_hz=a.rate, duration_s=a.duration, seed=a.seed,
+                         fingerprint=a.fingerprint)
+    try:
+        asyncio.run(phone.run())
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # noqa: BLE001 - one line for the user
+        print(f"perfcap sim phone: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    if phone.close_code and phone.device is None:
+        print(f"perfcap sim phone: refused ({phone.close_code}): {phone.close_reason}", file=sys.stderr)
+        return 1
+    print(f"sent {phone.sent} messages ({phone.events} motion events) as device {phone.device}", file=sys.stderr)
+    return 0
