@@ -44,14 +44,25 @@ class StreamStats(Subscriber):
 
     accepts = frozenset({Sample, SampleBatch, DeviceEvent})
 
+    #: events kept for the report (protocol-error events are counted per device, not kept: a device
+    #: sending garbage would otherwise grow this without bound)
+    MAX_EVENTS = 10_000
+
     def __init__(self) -> None:
         self.streams: dict[str, StreamCounter] = {}
         self.events: list[DeviceEvent] = []
+        self.events_not_kept = 0
+        self.protocol_error_events: dict[str, int] = {}
         self._lock = threading.Lock()
 
     def on_item(self, item: Any) -> None:
         if type(item) is DeviceEvent:
-            self.events.append(item)
+            if item.kind is EventKind.PROTOCOL_ERRORS:
+                self.protocol_error_events[item.device] = self.protocol_error_events.get(item.device, 0) + 1
+            elif len(self.events) < self.MAX_EVENTS:
+                self.events.append(item)
+            else:
+                self.events_not_kept += 1
             return
         c = self.streams.get(item.stream)
         if c is None:

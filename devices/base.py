@@ -92,6 +92,11 @@ class Device(abc.ABC):
     #: keyword arguments for the ClockSync of each device clock (``capture.clocksync.ClockSync``), e.g.
     #: ``{"window_s": 60.0}`` for a phone whose messages arrive with tens of ms of jitter
     clock_sync_options: ClassVar[dict[str, Any]] = {}
+    #: streams on the same device clock share one clock fit even at different rates (a phone's
+    #: motion, orientation and touch events all carry the page's clock): more points for the fit,
+    #: and the one-clock fast path. Off by default: it would change the bus times of sessions
+    #: recorded by devices whose streams were fitted separately.
+    one_fit_per_clock: ClassVar[bool] = False
 
     def __init__(self, name: str, transport: Transport, options: Mapping[str, Any] | None = None,
                  clock: Clock = MONOTONIC, strict: bool = False) -> None:
@@ -201,7 +206,8 @@ class Device(abc.ABC):
         self._domain_of: list[int] = []
         keys: dict[Any, int] = {}
         for i, s in enumerate(self.streams):
-            key: Any = (s.clock, s.nominal_rate_hz) if s.clock is not None else ("stream", i)
+            key: Any = ("stream", i) if s.clock is None else s.clock if self.one_fit_per_clock else (
+                s.clock, s.nominal_rate_hz)
             if key not in keys:
                 keys[key] = len(self._domains)
                 opts = self.clock_sync_options if s.clock is not None else {}
@@ -350,7 +356,8 @@ class Device(abc.ABC):
                 info = streams[si]
                 self.stats.missing_time += 1
                 last = last_ticks[si]
-                tk = (0 if last is None else last) + round(info.clock.tick_hz / info.nominal_rate_hz)  # type: ignore[union-attr,operator]
+                step = round(info.clock.tick_hz / info.nominal_rate_hz) if info.nominal_rate_hz else 1  # type: ignore[union-attr]
+                tk = (0 if last is None else last) + step
                 if info.clock.wrap_ticks:  # type: ignore[union-attr]
                     tk %= info.clock.wrap_ticks  # type: ignore[union-attr]
             last_ticks[si] = tk

@@ -136,7 +136,7 @@ class SimPagePhone:
                 return
             reader = asyncio.get_running_loop().create_task(self._answer(ws))
             dropped = False
-            queue: list[bytes] = []
+            queue: list[Any] = []  # PageMessages held while the link is down
             try:
                 for m in msgs:
                     wait = (m.sent_ms - self.page_ms()) / 1e3
@@ -152,7 +152,7 @@ class SimPagePhone:
                         reader.cancel()
                         back_at = m.sent_ms + self.drop_for_s * 1e3
                         ws = None
-                        queue.append(m.data)
+                        queue.append(m)
                         while self.page_ms() < back_at:
                             await asyncio.sleep(0.01)
                         ws = await self._connect(session)
@@ -164,8 +164,9 @@ class SimPagePhone:
                         self.close_code = ws.close_code
                         break
                     for q in queue:  # what was queued while away, first
-                        await ws.send_str(q.decode())
+                        await ws.send_str(q.data.decode())
                         self.sent += 1
+                        self.events += len(q.frame.motion)
                     queue.clear()
                     await ws.send_str(m.data.decode())
                     self.sent += 1
@@ -176,6 +177,7 @@ class SimPagePhone:
                 reader.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await reader
+        await asyncio.sleep(0.1)  # let the TLS transport finish closing before the loop ends (aiohttp advice)
 
     def stop(self) -> None:
         if self._loop is not None:
@@ -219,9 +221,11 @@ def post_sensorlogger(url: str, body: bytes, fingerprint: str | None = None, tim
                               headers={"Content-Type": "application/json"},
                               timeout=aiohttp.ClientTimeout(total=timeout)) as r:
                 try:
-                    return r.status, await r.json(content_type=None)
+                    res = r.status, await r.json(content_type=None)
                 except ValueError:
-                    return r.status, None
+                    res = r.status, None
+        await asyncio.sleep(0.1)  # let the TLS transport finish closing before the loop ends
+        return res
 
     return asyncio.run(go())
 

@@ -80,6 +80,13 @@ class Discovery:
             from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZeroconf
 
             ifaces: Any = InterfaceChoice.All if self.interfaces == "all" else list(self.interfaces)
+            if ifaces is not InterfaceChoice.All:
+                for addr in ifaces:  # zeroconf leaks its socket on an address this machine lacks
+                    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                        try:
+                            probe.bind((addr, 0))
+                        except OSError as exc:
+                            raise OSError(f"{addr} is not an address of this machine ({exc.strerror})") from None
             self._azc = AsyncZeroconf(interfaces=ifaces, ip_version=IPVersion.V4Only)
             self._info = AsyncServiceInfo(
                 SERVICE_TYPE, f"{self.instance}.{SERVICE_TYPE}", port=self.port, properties=self.properties,
@@ -142,7 +149,8 @@ class Discovery:
         if self._azc is not None:
             try:
                 if self.advertised and self._info is not None:
-                    await self._azc.async_unregister_service(self._info)
+                    # the goodbye packets: awaited, or closing cancels them and browsers keep a stale entry
+                    await (await self._azc.async_unregister_service(self._info))
                 await self._azc.async_close()
             except Exception:  # noqa: BLE001
                 log.debug("mDNS close failed", exc_info=True)

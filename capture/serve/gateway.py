@@ -33,12 +33,13 @@ from devices.transports.network import Inbox
 
 log = logging.getLogger(__name__)
 
-#: WebSocket close codes the page understands (see capture/serve/static/phone.html).
+#: WebSocket close codes the page understands (see capture/serve/static/phone.html). An oversized
+#: message is closed by aiohttp itself with the standard 1009 (message too big).
 CLOSE_MALFORMED = 4400
 CLOSE_TOKEN = 4401
 CLOSE_TOO_MANY = 4409
 CLOSE_SHUTDOWN = 4410
-CLOSE_TOO_LARGE = 4413
+CLOSE_TOO_LARGE = 1009
 CLOSE_RATE = 4429
 
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._\-]{0,63}$")
@@ -131,8 +132,11 @@ class Gateway:
         if self._open >= lim.max_connections or self._per_host.get(host, 0) >= lim.max_connections_per_host:
             self.rejected.count("too many connections", host)
             return web.Response(status=503, text="too many connections\n")
-        ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, heartbeat=20.0, autoping=True,
-                                   compress=False)
+        # No aiohttp heartbeat: it re-arms on the close frame of a refused client and keeps the dead
+        # socket ~30 s (a flood of refused connections then grows memory). The gateway's own pings
+        # and the receive timeout in _pump find dead peers instead.
+        ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, heartbeat=None, autoping=True,
+                                   compress=False, receive_timeout=None)
         await ws.prepare(request)
         self._open += 1
         self._per_host[host] = self._per_host.get(host, 0) + 1
@@ -228,7 +232,16 @@ class Gateway:
         malformed = 0
         put = inbox.put
         stats = self.stats
-        async for msg in ws:
+        idle_s = max(10.0 * lim.ping_s, 10.0)  # the page answers a ping every ping_s: silence = dead link
+        while True:
+            try:
+                msg = await ws.receive(timeout=idle_s)
+            except asyncio.TimeoutError:
+                self.rejected.count("silent connection", host, f"nothing for {idle_s:g} s")
+                await ws.close(code=WSCloseCode.GOING_AWAY, message=b"no messages; is the phone still there?")
+                break
+            if msg.type in (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED):
+                break
             t = clock.now_ns()
             if msg.type is WSMsgType.TEXT:
                 if not rate.allow(t):
@@ -247,10 +260,13 @@ class Gateway:
                     await ws.close(code=CLOSE_MALFORMED, message=b"too many malformed messages")
                     break
             elif msg.type is WSMsgType.ERROR:
-                self.rejected.count("oversized or broken message", host, str(ws.exception()))
+                err = msg.data
+                if getattr(err, "code", None) == WSCloseCode.MESSAGE_TOO_BIG:
+                    # aiohttp has already closed the socket with 1009 (message too big)
+                    self.rejected.count("message too large", host, str(err))
+                else:
+                    self.rejected.count("broken message", host, str(err))
                 break
-        if ws.close_code == WSCloseCode.MESSAGE_TOO_BIG:
-            self.rejected.count("message too large", host)
 
     async def close_phones(self, code: int, reason: str) -> None:
         """Close every page socket (token rotation, shutdown)."""

@@ -221,6 +221,7 @@ class Service:
         self.discovery: Discovery | None = None
         self.certificate: Certificate | None = None
         self._runners: list[web.AppRunner] = []
+        self._sites: list[web.TCPSite] = []
         self._stop: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._t0 = 0
@@ -360,6 +361,13 @@ class Service:
             if cfg.mdns:
                 props = {"v": __version__, "port": str(port), "token": "1", "path": "/",
                          "tls": "1" if cfg.tls else "0"}
+                ep = self.endpoints
+                for key, val in (("osc", ep.osc_port), ("hyperimu", ep.hyperimu_port),
+                                 ("hyperimu_tcp", ep.hyperimu_tcp_port)):
+                    if val:
+                        props[key] = str(val)
+                if ep.control_url and cfg.control_host not in ("127.0.0.1", "::1", "localhost"):
+                    props["control"] = ep.control_url.rsplit(":", 1)[1].split("/", 1)[0]
                 ifaces: Any = "all" if cfg.mdns_interfaces == "all" else [
                     i.strip() for i in cfg.mdns_interfaces.split(",") if i.strip()]
                 self.discovery = Discovery(None, [public], port, props, interfaces=ifaces, on_found=self._on_found)
@@ -383,6 +391,7 @@ class Service:
         await runner.setup()
         self._runners.append(runner)
         site = web.TCPSite(runner, host, port, ssl_context=ssl_ctx, backlog=128)
+        self._sites.append(site)
         try:
             await site.start()
         except OSError as exc:
@@ -406,6 +415,12 @@ class Service:
         await self._stop.wait()
 
     async def _close_network(self) -> None:
+        # First stop accepting (a phone reconnecting right now must not slip in), then close the
+        # phones' sockets, then wait for their handlers.
+        for site in self._sites:
+            with contextlib.suppress(Exception):
+                await site.stop()
+        self._sites = []
         with contextlib.suppress(Exception):
             await self.gateway.stop()
         if self.discovery is not None:
@@ -413,7 +428,30 @@ class Service:
         for r in self._runners:
             with contextlib.suppress(Exception):
                 await r.cleanup()
+        if self._runners:
+            # TLS connections close with a close_notify exchange: give the peers a moment, or the
+            # loop ends first and their sockets are left to the garbage collector
+            await asyncio.sleep(0.25)
         self._runners = []
+        self._close_stragglers()
+
+    def _close_stragglers(self) -> None:
+        """Close connections on our ports that no handler owns: a browser's speculative connection
+        still in its TLS handshake is accepted by asyncio but never reaches aiohttp, and
+        ``Server.close()`` leaves it open (Python < 3.13 has no ``Server.close_clients``)."""
+        ports = {p for p in (self.endpoints.port, self.endpoints.hyperimu_tcp_port) if p}
+        if self.endpoints.control_url:
+            with contextlib.suppress(ValueError):
+                ports.add(int(self.endpoints.control_url.rsplit(":", 1)[1].split("/", 1)[0]))
+        transports = getattr(asyncio.get_running_loop(), "_transports", None)  # selector loops keep them
+        if not ports or transports is None:
+            return
+        for t in list(transports.values()):
+            try:
+                if t is not None and not t.is_closing() and (t.get_extra_info("sockname") or (None, None))[1] in ports:
+                    t.close()
+            except (AttributeError, OSError, IndexError, TypeError):
+                continue
 
     async def stop(self) -> Any:
         """Stop listening, drain what phones sent, stop devices, close the recording. Returns the

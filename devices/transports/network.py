@@ -265,8 +265,10 @@ class SensorServerTransport(Transport):
         from websockets.sync.client import connect
 
         try:
-            self._ws = connect(self.ws_url, open_timeout=self.opts["open_timeout"],
-                               max_size=self.opts["max_message"], compression=None)
+            conn = connect(self.ws_url, open_timeout=self.opts["open_timeout"],
+                           max_size=self.opts["max_message"], compression=None)
+            # entered as a context manager (websockets 17.1 deprecates the bare call); closed in close()
+            self._ws = conn.__enter__()
         except (ConnectionRefusedError, TimeoutError) as exc:
             raise DeviceNotFoundError(f"SensorServer at {self.host}:{self.port} does not answer ({exc}); is the app's"
                                       " server started and the phone on this network?", source=self.url) from exc
