@@ -91,7 +91,7 @@ class PhonePage(Device):
     IMU, USER_ACC, ATTITUDE, TOUCH = 0, 1, 2, 3
     #: tens of ms of network jitter: a longer fit window steadies the drift; step_s keeps a Wi-Fi
     #: stall of seconds from starting clock epochs (the page clock itself never steps)
-    clock_sync_options = {"window_s": 60.0, "step_s": 0.05}
+    clock_sync_options: ClassVar[dict[str, Any]] = {"window_s": 60.0, "step_s": 0.05}
     one_fit_per_clock = True
 
     def __init__(self, name: str, transport: Transport, options: Mapping[str, Any] | None = None,
@@ -216,7 +216,7 @@ class SensorLoggerPhone(Device):
 
     ACC, GYRO, GRAVITY, MAG, ATTITUDE, TOTAL_ACC, BARO = range(7)
     #: 1 s batches: a longer fit window; the phone's wall clock can be stepped (NTP): new epoch
-    clock_sync_options = {"window_s": 60.0, "step_s": 0.05}
+    clock_sync_options: ClassVar[dict[str, Any]] = {"window_s": 60.0, "step_s": 0.05}
     one_fit_per_clock = True
     #: recent messageIds remembered to tell a duplicate from a late message
     RECENT_IDS = 256

@@ -14,9 +14,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
-from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +76,12 @@ class Discovery:
 
     async def start(self) -> None:
         try:
-            from zeroconf import IPVersion, InterfaceChoice
-            from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZeroconf
+            from zeroconf import InterfaceChoice, IPVersion
+            from zeroconf.asyncio import (
+                AsyncServiceBrowser,
+                AsyncServiceInfo,
+                AsyncZeroconf,
+            )
 
             ifaces: Any = InterfaceChoice.All if self.interfaces == "all" else list(self.interfaces)
             if ifaces is not InterfaceChoice.All:
@@ -134,7 +138,7 @@ class Discovery:
             if self.on_found is not None:
                 try:
                     self.on_found(found)
-                except Exception:  # noqa: BLE001
+                except Exception:
                     log.exception("mDNS: handling %s failed", name)
 
     async def stop(self) -> None:
@@ -143,7 +147,7 @@ class Discovery:
         if self._browser is not None:
             try:
                 await self._browser.async_cancel()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.debug("mDNS browser cancel failed", exc_info=True)
             self._browser = None
         if self._azc is not None:
@@ -152,7 +156,7 @@ class Discovery:
                     # the goodbye packets: awaited, or closing cancels them and browsers keep a stale entry
                     await (await self._azc.async_unregister_service(self._info))
                 await self._azc.async_close()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.debug("mDNS close failed", exc_info=True)
             self._azc = None
             self.advertised = None

@@ -185,7 +185,7 @@ class Gateway:
     async def _hello(self, ws: web.WebSocketResponse, host: str) -> tuple[str, dict[str, Any]] | None:
         try:
             msg = await ws.receive(timeout=self.limits.hello_timeout_s)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self.rejected.count("no hello", host)
             await ws.close(code=CLOSE_TOKEN, message=b"no hello with a pairing token")
             return None
@@ -222,7 +222,7 @@ class Gateway:
         while not ws.closed:
             await asyncio.sleep(self.limits.ping_s)
             with contextlib.suppress(ConnectionError, RuntimeError):
-                await ws.send_str('{"type":"ping","h":%d}' % self.clock.now_ns())
+                await ws.send_str(f'{{"type":"ping","h":{self.clock.now_ns()}}}')
 
     async def _pump(self, ws: web.WebSocketResponse, inbox: Inbox, host: str) -> None:
         lim = self.limits
@@ -236,7 +236,7 @@ class Gateway:
         while True:
             try:
                 msg = await ws.receive(timeout=idle_s)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 self.rejected.count("silent connection", host, f"nothing for {idle_s:g} s")
                 await ws.close(code=WSCloseCode.GOING_AWAY, message=b"no messages; is the phone still there?")
                 break

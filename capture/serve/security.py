@@ -135,7 +135,7 @@ class AllowList:
 class RateLimit:
     """A token bucket: ``rate`` messages per second, bursts up to ``burst``. Times are host ns."""
 
-    __slots__ = ("rate", "burst", "_level", "_t")
+    __slots__ = ("_level", "_t", "burst", "rate")
 
     def __init__(self, rate: float, burst: float, t_ns: int) -> None:
         self.rate = rate

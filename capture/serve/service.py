@@ -20,10 +20,10 @@ import os
 import re
 import socket
 import threading
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable, Mapping, Sequence
 
 from aiohttp import web
 

@@ -68,7 +68,7 @@ def ensure_certificate(state_dir: Path, hosts: list[str], now: _dt.datetime | No
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-    now = now or _dt.datetime.fromtimestamp(MONOTONIC.wall_time_s(), _dt.timezone.utc)
+    now = now or _dt.datetime.fromtimestamp(MONOTONIC.wall_time_s(), _dt.UTC)
     state_dir = Path(state_dir)
     cert_path, key_path = state_dir / CERT_FILE, state_dir / KEY_FILE
     want = {h for h in hosts if h} | {"localhost", "127.0.0.1"}

@@ -85,3 +85,50 @@ class Codec(abc.ABC):
                         self.name, message, offset, n)
         else:
             log.debug("%s: %s (at byte %d)", self.name, message, offset)
+
+
+class BadMessage(ValueError):
+    """Why one message is dropped; raised inside ``MessageCodec.parse`` and counted by ``feed``."""
+
+
+class MessageCodec(Codec):
+    """A codec for message transports (a WebSocket frame, an HTTP body, a UDP datagram): each
+    ``feed`` is exactly one whole message, so nothing is buffered between calls. ``parse`` turns
+    one message into frames or raises ``BadMessage``; ``feed`` bounds the size and counts a bad
+    message as one framing error with its bytes skipped.
+    """
+
+    #: the largest message accepted, bytes
+    max_bytes: ClassVar[int] = 1 << 20
+
+    def feed(self, data: bytes) -> list[Any]:
+        """Parse one whole message; returns its frames, or none if it was bad (counted).
+
+        Raises:
+            ProtocolError: only in strict mode, on a bad message.
+        """
+        data = bytes(data)
+        self.stats.bytes_in += len(data)
+        if len(data) > self.max_bytes:
+            return self.drop(f"message of {len(data)} bytes exceeds {self.max_bytes}", data)
+        try:
+            frames = self.parse(data)
+        except BadMessage as exc:
+            return self.drop(str(exc), data)
+        self.stats.frames += len(frames)
+        return frames
+
+    @abc.abstractmethod
+    def parse(self, data: bytes) -> list[Any]:
+        """The frames of one message.
+
+        Raises:
+            BadMessage: the message is unusable (it is dropped and counted).
+        """
+
+    def drop(self, why: str, data: bytes) -> list[Any]:
+        """Count ``data`` as one bad message (its bytes skipped); returns no frames."""
+        self.stats.skipped_bytes += len(data)
+        self._bad("framing", f"{why}; message dropped", 0, data[:200])
+        return []
+

@@ -59,8 +59,14 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.parsing import osc_types
 
-from devices.codecs.base import Codec
-from devices.codecs.textline import CSV, MAX_LINE, TextFrame, TextLineCodec, format_number
+from devices.codecs.base import BadMessage, MessageCodec
+from devices.codecs.textline import (
+    CSV,
+    MAX_LINE,
+    TextFrame,
+    TextLineCodec,
+    format_number,
+)
 
 log = logging.getLogger(__name__)
 
@@ -96,8 +102,7 @@ class OscFrame(NamedTuple):
     timetag: int | None = None
 
 
-class _Reject(ValueError):
-    """Internal: why an input is rejected."""
+_Reject = BadMessage  # why an input is rejected
 
 
 def _tuples(v: Any) -> Any:
@@ -228,44 +233,31 @@ def _walk(root: Any) -> list[OscMsg]:
     return out
 
 
-class OscCodec(Codec):
+class OscCodec(MessageCodec):
     """OSC datagrams (one per ``feed``) to ``OscFrame``s; see the module docstring."""
 
     name = "osc"
 
-    def feed(self, data: bytes) -> list[OscFrame]:
-        """Parse one whole datagram; returns one frame, or none if it was bad (counted).
+    max_bytes = OSC_MAX_DATAGRAM
 
-        Raises:
-            ProtocolError: only in strict mode, on a bad datagram.
-        """
-        data = bytes(data)
-        self.stats.bytes_in += len(data)
+    def parse(self, data: bytes) -> list[OscFrame]:
+        """One whole datagram (a message or a bundle) to one frame."""
+        if not data:
+            raise _Reject("empty datagram")
+        _check_osc_layout(data)
         try:
-            if len(data) > OSC_MAX_DATAGRAM:
-                raise _Reject(f"datagram of {len(data)} bytes exceeds {OSC_MAX_DATAGRAM}")
-            if not data:
-                raise _Reject("empty datagram")
-            _check_osc_layout(data)
-            try:
-                if data.startswith(_BUNDLE):
-                    root: Any = osc_bundle.OscBundle(data)
-                    timetag: int | None = _TIMETAG.unpack_from(data, 8)[0]
-                else:
-                    root = osc_message.OscMessage(data)
-                    timetag = None
-                messages = _walk(root)
-            except _Reject:
-                raise
-            except Exception as exc:  # noqa: BLE001 - a foreign parser: whatever it raises is bad input
-                raise _Reject(f"python-osc cannot parse it ({type(exc).__name__}: {exc})") from None
-            frame = OscFrame(tuple(messages), timetag)
-        except _Reject as exc:
-            self.stats.skipped_bytes += len(data)
-            self._bad("framing", f"{exc}; datagram dropped", 0, data[:200])
-            return []
-        self.stats.frames += 1
-        return [frame]
+            if data.startswith(_BUNDLE):
+                root: Any = osc_bundle.OscBundle(data)
+                timetag: int | None = _TIMETAG.unpack_from(data, 8)[0]
+            else:
+                root = osc_message.OscMessage(data)
+                timetag = None
+            messages = _walk(root)
+        except _Reject:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a foreign parser: whatever it raises is bad input
+            raise _Reject(f"python-osc cannot parse it ({type(exc).__name__}: {exc})") from None
+        return [OscFrame(tuple(messages), timetag)]
 
     def reject(self, message: str, raw: bytes = b"") -> None:
         """Count a message the device layer found unusable (wrong argument count or type) as a
@@ -569,39 +561,25 @@ def _ss_int(v: Any, what: str, lo: int, hi: int) -> int:
     return v
 
 
-class SensorServerCodec(Codec):
+class SensorServerCodec(MessageCodec):
     """SensorServer JSON text frames (one per ``feed``); see the module docstring."""
 
     name = "sensorserver"
 
-    def feed(self, data: bytes) -> list[SensorServerFrame]:
-        """Parse one whole message; returns one frame, or none if it was bad (counted).
+    max_bytes = SS_MAX_BYTES
 
-        Raises:
-            ProtocolError: only in strict mode, on a bad message.
-        """
-        data = bytes(data)
-        self.stats.bytes_in += len(data)
+    def parse(self, data: bytes) -> list[SensorServerFrame]:
         try:
-            if len(data) > SS_MAX_BYTES:
-                raise _Reject(f"message of {len(data)} bytes exceeds {SS_MAX_BYTES}")
-            try:
-                obj = json.loads(data.decode("utf-8"), parse_constant=_reject_constant)
-            except UnicodeDecodeError as exc:
-                raise _Reject(f"not UTF-8 ({exc.reason} at byte {exc.start})") from None
-            except _Reject:
-                raise
-            except (ValueError, RecursionError) as exc:
-                raise _Reject(f"not JSON ({exc})") from None
-            if not isinstance(obj, dict):
-                raise _Reject(f"message is a JSON {type(obj).__name__}, not an object")
-            frame: SensorServerFrame = self._touch(obj) if "action" in obj else self._event(obj)
-        except _Reject as exc:
-            self.stats.skipped_bytes += len(data)
-            self._bad("framing", f"{exc}; message dropped", 0, data[:200])
-            return []
-        self.stats.frames += 1
-        return [frame]
+            obj = json.loads(data.decode("utf-8"), parse_constant=_reject_constant)
+        except UnicodeDecodeError as exc:
+            raise _Reject(f"not UTF-8 ({exc.reason} at byte {exc.start})") from None
+        except _Reject:
+            raise
+        except (ValueError, RecursionError) as exc:
+            raise _Reject(f"not JSON ({exc})") from None
+        if not isinstance(obj, dict):
+            raise _Reject(f"message is a JSON {type(obj).__name__}, not an object")
+        return [self._touch(obj) if "action" in obj else self._event(obj)]
 
     @staticmethod
     def _event(obj: dict[str, Any]) -> SensorServerEvent:

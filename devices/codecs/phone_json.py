@@ -42,7 +42,7 @@ import math
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
-from devices.codecs.base import Codec
+from devices.codecs.base import BadMessage, MessageCodec
 
 log = logging.getLogger(__name__)
 
@@ -156,8 +156,7 @@ class SensorLoggerMessage(NamedTuple):
 
 
 # -- helpers --------------------------------------------------------------------------------------
-class _Invalid(ValueError):
-    """Internal: why a message or a row is rejected."""
+_Invalid = BadMessage  # a message (or one row or entry of it) is unusable
 
 
 def _reject_constant(name: str) -> float:
@@ -237,48 +236,32 @@ def _dumps(obj: Any) -> bytes:
 
 
 # -- phone page -----------------------------------------------------------------------------------
-class PageCodec(Codec):
+class PageCodec(MessageCodec):
     """Codec of perfcap's built-in phone page protocol (v1): one JSON text frame per ``feed``."""
 
     name = "phone_page"
 
-    def feed(self, data: bytes) -> list[PageFrame]:
-        """Parse one whole message; returns one frame, or none if it was bad (counted).
+    max_bytes = PAGE_MAX_BYTES
 
-        Raises:
-            ProtocolError: only in strict mode, on a bad message or row.
-        """
-        data = bytes(data)
-        self.stats.bytes_in += len(data)
-        if len(data) > PAGE_MAX_BYTES:
-            return self._drop(f"message of {len(data)} bytes exceeds {PAGE_MAX_BYTES}", data)
-        try:
-            obj = _loads(data)
-            if not isinstance(obj, dict):
-                raise _Invalid(f"message is {_kind(obj)}, not an object")
-            typ = obj.get("type")
-            if typ == "data":
-                frame: PageFrame = self._data(obj, data)
-            elif typ == "hello":
-                frame = self._hello(obj)
-            elif typ == "pong":
-                frame = PagePong(_int(obj.get("h"), "pong h", -_MAX_TIME - 1, _MAX_TIME), _num(obj.get("t"), "pong t"))
-            elif typ == "welcome":
-                frame = PageWelcome(_text(obj.get("device"), "welcome device"), _num(obj.get("ping_s"), "ping_s"))
-            elif typ == "ping":
-                frame = PagePing(_int(obj.get("h"), "ping h", -_MAX_TIME - 1, _MAX_TIME))
-            else:
-                raise _Invalid(f"unknown message type {typ!r}" if type(typ) is str
-                               else f"message type is {_kind(typ)}")
-        except _Invalid as exc:
-            return self._drop(str(exc), data)
-        self.stats.frames += 1
+    def parse(self, data: bytes) -> list[PageFrame]:
+        obj = _loads(data)
+        if not isinstance(obj, dict):
+            raise _Invalid(f"message is {_kind(obj)}, not an object")
+        typ = obj.get("type")
+        if typ == "data":
+            frame: PageFrame = self._data(obj, data)
+        elif typ == "hello":
+            frame = self._hello(obj)
+        elif typ == "pong":
+            frame = PagePong(_int(obj.get("h"), "pong h", -_MAX_TIME - 1, _MAX_TIME), _num(obj.get("t"), "pong t"))
+        elif typ == "welcome":
+            frame = PageWelcome(_text(obj.get("device"), "welcome device"), _num(obj.get("ping_s"), "ping_s"))
+        elif typ == "ping":
+            frame = PagePing(_int(obj.get("h"), "ping h", -_MAX_TIME - 1, _MAX_TIME))
+        else:
+            raise _Invalid(f"unknown message type {typ!r}" if type(typ) is str
+                           else f"message type is {_kind(typ)}")
         return [frame]
-
-    def _drop(self, why: str, data: bytes) -> list[PageFrame]:
-        self.stats.skipped_bytes += len(data)
-        self._bad("framing", f"{why}; message dropped", 0, data[:200])
-        return []
 
     @staticmethod
     def _hello(obj: Mapping[str, Any]) -> PageHello:
@@ -389,7 +372,7 @@ class PageCodec(Codec):
 
 
 # -- Sensor Logger --------------------------------------------------------------------------------
-class SensorLoggerCodec(Codec):
+class SensorLoggerCodec(MessageCodec):
     """Codec of Sensor Logger's HTTP push (and MQTT) JSON: one message per ``feed``."""
 
     name = "sensorlogger"
@@ -399,30 +382,20 @@ class SensorLoggerCodec(Codec):
         #: entries per sensor name this codec does not decode (each name logged once)
         self.unknown_names: dict[str, int] = {}
 
-    def feed(self, data: bytes) -> list[SensorLoggerMessage]:
-        """Parse one whole message; returns one frame, or none if it was bad (counted).
+    max_bytes = SL_MAX_BYTES
 
-        Raises:
-            ProtocolError: only in strict mode, on a bad message or entry.
-        """
-        data = bytes(data)
-        self.stats.bytes_in += len(data)
-        if len(data) > SL_MAX_BYTES:
-            return self._drop(f"message of {len(data)} bytes exceeds {SL_MAX_BYTES}", data)
-        try:
-            obj = _loads(data)
-            if not isinstance(obj, dict):
-                raise _Invalid(f"message is {_kind(obj)}, not an object")
-            mid = _int(obj.get("messageId"), "messageId")
-            sid = _text(obj.get("sessionId"), "sessionId", 256)
-            did = _text(obj.get("deviceId"), "deviceId", 256)
-            payload = obj.get("payload")
-            if not isinstance(payload, list):
-                raise _Invalid(f"payload is {_kind(payload)}, not an array")
-            if len(payload) > SL_MAX_ENTRIES:
-                raise _Invalid(f"payload has {len(payload)} entries (at most {SL_MAX_ENTRIES})")
-        except _Invalid as exc:
-            return self._drop(str(exc), data)
+    def parse(self, data: bytes) -> list[SensorLoggerMessage]:
+        obj = _loads(data)
+        if not isinstance(obj, dict):
+            raise _Invalid(f"message is {_kind(obj)}, not an object")
+        mid = _int(obj.get("messageId"), "messageId")
+        sid = _text(obj.get("sessionId"), "sessionId", 256)
+        did = _text(obj.get("deviceId"), "deviceId", 256)
+        payload = obj.get("payload")
+        if not isinstance(payload, list):
+            raise _Invalid(f"payload is {_kind(payload)}, not an array")
+        if len(payload) > SL_MAX_ENTRIES:
+            raise _Invalid(f"payload has {len(payload)} entries (at most {SL_MAX_ENTRIES})")
         entries: list[SensorEntry] = []
         for i, e in enumerate(payload):
             try:
@@ -432,13 +405,7 @@ class SensorLoggerCodec(Codec):
                 continue
             if ent is not None:
                 entries.append(ent)
-        self.stats.frames += 1
         return [SensorLoggerMessage(mid, sid, did, tuple(entries))]
-
-    def _drop(self, why: str, data: bytes) -> list[SensorLoggerMessage]:
-        self.stats.skipped_bytes += len(data)
-        self._bad("framing", f"{why}; message dropped", 0, data[:200])
-        return []
 
     def _entry(self, e: Any) -> SensorEntry | None:
         if not isinstance(e, dict):

@@ -22,7 +22,13 @@ import threading
 from typing import Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
-from capture.errors import ConfigError, DeviceInitError, DeviceIOError, DeviceNotFoundError, EndOfStream
+from capture.errors import (
+    ConfigError,
+    DeviceInitError,
+    DeviceIOError,
+    DeviceNotFoundError,
+    EndOfStream,
+)
 from capture.sample import Chunk, Direction
 from devices.codecs.phone_apps import SENSORSERVER_CLOSE_CODES, sensorserver_path
 from devices.options import Option
@@ -261,7 +267,11 @@ class SensorServerTransport(Transport):
         return f"ws://{host}:{self.port}{self.path}"
 
     def open(self) -> None:
-        from websockets.exceptions import InvalidHandshake, InvalidURI, WebSocketException
+        from websockets.exceptions import (
+            InvalidHandshake,
+            InvalidURI,
+            WebSocketException,
+        )
         from websockets.sync.client import connect
 
         try:
@@ -280,7 +290,7 @@ class SensorServerTransport(Transport):
         if ws is not None:
             try:
                 ws.close()
-            except Exception:  # noqa: BLE001 - closing a dead socket must not fail the reader
+            except Exception:
                 log.debug("sensorserver close failed", exc_info=True)
 
     @property
