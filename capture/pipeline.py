@@ -58,7 +58,7 @@ class StreamStats(Subscriber):
     def on_item(self, item: Any) -> None:
         if type(item) is DeviceEvent:
             if item.kind is EventKind.PROTOCOL_ERRORS:
-                self.protocol_error_events[item.device] = self.protocol_error_events.get(item.device, 0) + 1
+                self.protocol_error_events[item.source] = self.protocol_error_events.get(item.source, 0) + 1
             elif len(self.events) < self.MAX_EVENTS:
                 self.events.append(item)
             else:

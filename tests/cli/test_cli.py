@@ -160,6 +160,7 @@ def test_console_script_and_demo_run_without_shared(tmp_path):
     assert p.returncode == 0, p.stderr
     assert "all" in p.stdout and "equal the recorded ones" in p.stdout
     assert "Traceback" not in p.stderr
+    assert "ERROR" not in p.stderr, p.stderr  # e.g. a subscriber failing on an item is logged, not raised
     p2 = subprocess.run([sys.executable, "-m", "capture.cli", "info", str(tmp_path / "demo.mcap"), "--json"],
                         capture_output=True, text=True, timeout=60)
     s = json.loads(p2.stdout)
