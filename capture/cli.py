@@ -82,6 +82,8 @@ def _live_line(cap: Any, elapsed: float) -> None:
             parts.append(f"{d.name}: waiting for the device")
         elif d.state.value == "reconnecting":
             parts.append(f"{d.name}: reconnecting")
+    if not parts:
+        parts.append("no devices yet (waiting for phones to connect)" if not cap.devices else "no samples yet")
     print(f"[{elapsed:6.1f} s] " + "; ".join(parts), file=sys.stderr, flush=True)
 
 

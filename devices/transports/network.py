@@ -44,8 +44,9 @@ class Inbox:
     never an unbounded queue.
     """
 
-    def __init__(self, key: str, max_chunks: int = 65536) -> None:
+    def __init__(self, key: str, max_chunks: int = 65536, label: str | None = None) -> None:
         self.key = key
+        self.label = label or key  # PROTOCOL/ID, for messages
         self.max_chunks = max_chunks
         self._q: collections.deque[Chunk] = collections.deque()
         self._cv = threading.Condition(threading.Lock())
@@ -115,7 +116,7 @@ class Inbox:
             if self.finished:
                 raise EndOfStream(f"{self.key}: {self.reason}", source=self.key)
             if not self.connected:
-                raise DeviceIOError(f"{self.key}: {self.reason}", source=self.key)
+                raise DeviceIOError(self.not_connected(), source=self.key)
             self._waiting = True
             try:
                 self._cv.wait(timeout)
@@ -126,8 +127,11 @@ class Inbox:
             if self.finished:
                 raise EndOfStream(f"{self.key}: {self.reason}", source=self.key)
             if not self.connected:
-                raise DeviceIOError(f"{self.key}: {self.reason}", source=self.key)
+                raise DeviceIOError(self.not_connected(), source=self.key)
             return None
+
+    def not_connected(self) -> str:
+        return f"phone {self.label} is not connected ({self.reason})"
 
 
 class Hub:
@@ -142,7 +146,7 @@ class Hub:
         with self._lock:
             box = self._boxes.get(key)
             if box is None:
-                box = self._boxes[key] = Inbox(f"{self.name}/{key}")
+                box = self._boxes[key] = Inbox(f"{self.name}/{key}", label=key)
             return box
 
     def get(self, key: str) -> Inbox | None:
@@ -207,7 +211,7 @@ class NetTransport(Transport):
         if box.finished:
             raise EndOfStream(f"{self.key}: {box.reason}", source=self.url)
         if not box.connected and not len(box):
-            raise DeviceNotFoundError(f"phone {self.key} is not connected ({box.reason})", source=self.url)
+            raise DeviceNotFoundError(box.not_connected(), source=self.url)
         self._box = box
 
     def close(self) -> None:
