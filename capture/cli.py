@@ -226,6 +226,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                        "recorder_max_bytes": s.bus.recorder_max_mb << 20,
                                        "live_queue": s.bus.live_queue})
 
+    if args.record:  # before anything starts, so the take has the devices' first bytes
+        try:
+            service.start_recording(args.record, overwrite=s.recorder.overwrite, anywhere=True)
+        except BaseException:
+            service.capture.stop()
+            raise
+
     def ready(svc: Service) -> None:
         ep = svc.endpoints
         out(f"perfcap {__version__} serve")
@@ -245,9 +252,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
             out(f"  control API     {ep.control_url}  (Authorization: Bearer <token>)")
         out(f"  mDNS            {ep.advertised or 'off: ' + str(ep.mdns_error or 'disabled')}")
         _print_qr(ep.pair_url)
-        if args.record:
-            path = svc.start_recording(args.record, overwrite=s.recorder.overwrite)
-            out(f"  recording to    {path}")
+        if svc.capture.output:
+            out(f"  recording to    {svc.capture.output}")
         out("Ctrl-C stops and flushes the recording.")
         sys.stdout.flush()
 
@@ -1036,6 +1042,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "SensorServer), control API, mDNS")
     sv.add_argument("-d", "--device", action="append", metavar="DEVICE", help="also capture this device")
     sv.add_argument("--record", metavar="SESSION.mcap", help="record from the start (else POST /api/record/start)")
+    sv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     sv.add_argument("--sessions-dir", help="where POST /api/record/start puts sessions without a path")
     sv.add_argument("--host", help="address the phone endpoints listen on (default all)")
     sv.add_argument("--port", type=int, help="phone page / WebSocket / Sensor Logger port (HTTPS)")
@@ -1058,7 +1065,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="HyperIMU's enabled sensors, in the app's order")
     sv.add_argument("--phone-name", action="append", metavar="PROTOCOL/ID=NAME",
                     help="a fixed device name for a phone (e.g. page/5f2c0a...=pocket)")
-    sv.add_argument("--max-phones", type=int)
+    sv.add_argument("--max-phones", type=int, help="phone devices the service may create (default 32)")
     sv.add_argument("--max-message-kb", type=int, help="largest message accepted (KiB)")
     sv.add_argument("--max-rate", type=float, help="messages per second per client")
     sv.add_argument("--max-connections-per-host", type=int)

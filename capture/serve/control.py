@@ -14,8 +14,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
+import re
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
@@ -26,6 +28,10 @@ if TYPE_CHECKING:
     from capture.serve.service import Service
 
 log = logging.getLogger(__name__)
+
+_HOST_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.\-:]{0,252}$")
+_TYPES_RE = re.compile(r"^[A-Za-z0-9_.]+(,[A-Za-z0-9_.]+)*$")
+_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 
 
 def control_app(service: Service) -> web.Application:
@@ -48,6 +54,8 @@ def control_app(service: Service) -> web.Application:
                                      "not recording" in str(exc) else 400)
         except CaptureError as exc:
             return web.json_response({"error": str(exc)}, status=500)
+        except (OSError, ValueError) as exc:  # a path the OS refuses (missing directory, NUL byte, ...)
+            return web.json_response({"error": f"{type(exc).__name__}: {exc}"}, status=400)
 
     async def body(request: web.Request) -> dict[str, Any]:
         if not request.can_read_body:
@@ -69,13 +77,18 @@ def control_app(service: Service) -> web.Application:
     async def record_start(request: web.Request) -> web.Response:
         b = await body(request)
         path = b.get("path")
+        overwrite = b.get("overwrite", False)
         if path is not None and not isinstance(path, str):
-            raise ConfigError("path must be a string")
-        out = service.start_recording(path, overwrite=bool(b.get("overwrite", False)))
+            raise ConfigError('path must be a string, e.g. {"path": "take1.mcap"}')
+        if not isinstance(overwrite, bool):
+            raise ConfigError("overwrite must be true or false (JSON booleans)")
+        loop = asyncio.get_running_loop()  # creating the file may block: not on the event loop
+        out = await loop.run_in_executor(None, lambda: service.start_recording(path, overwrite=overwrite))
         return web.json_response({"recording": out})
 
     async def record_stop(request: web.Request) -> web.Response:
-        return web.json_response(service.stop_recording())
+        loop = asyncio.get_running_loop()  # the recorder drains and fsyncs: not on the event loop
+        return web.json_response(await loop.run_in_executor(None, service.stop_recording))
 
     async def rotate(request: web.Request) -> web.Response:
         tok = await service.rotate_token()
@@ -83,10 +96,15 @@ def control_app(service: Service) -> web.Application:
 
     async def sensorserver(request: web.Request) -> web.Response:
         b = await body(request)
-        host, port = b.get("host"), b.get("port")
-        if not isinstance(host, str) or not isinstance(port, int):
-            raise ConfigError('expected {"host": "192.168.1.40", "port": 8080}')
-        name = service.add_sensorserver(host, port, b.get("types"), b.get("name"))
+        host, port, types, name = b.get("host"), b.get("port"), b.get("types"), b.get("name")
+        if (not isinstance(host, str) or not _HOST_RE.match(host) or type(port) is not int
+                or not 0 < port < 65536):
+            raise ConfigError('expected {"host": "192.168.1.40", "port": 8080} (a host name or address, a port 1-65535)')
+        if types is not None and (not isinstance(types, str) or not _TYPES_RE.match(types)):
+            raise ConfigError('types must be sensor type names separated by commas, e.g. "accelerometer,gyroscope"')
+        if name is not None and (not isinstance(name, str) or not _NAME_RE.match(name)):
+            raise ConfigError("name must start with a letter and use letters, digits, _ or - (at most 64)")
+        name = service.add_sensorserver(host, port, types, name)
         return web.json_response({"device": name})
 
     app = web.Application(middlewares=[auth], client_max_size=64 * 1024)

@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 CLOSE_MALFORMED = 4400
 CLOSE_TOKEN = 4401
 CLOSE_TOO_MANY = 4409
+CLOSE_REPLACED = 4408   # the same phone id connected again: the older socket stops (no retry)
 CLOSE_SHUTDOWN = 4410
 CLOSE_TOO_LARGE = 1009
 CLOSE_RATE = 4429
@@ -62,7 +63,8 @@ class Limits:
     burst: float = 400.0
     max_connections: int = 32
     max_connections_per_host: int = 4
-    hello_timeout_s: float = 5.0
+    hello_timeout_s: float = 3.0
+    max_pending_hello: int = 64    # connections waiting for their hello, in total
     max_malformed: int = 20        # per connection before it is closed
     ping_s: float = 1.0
 
@@ -101,6 +103,9 @@ class Gateway:
         self._sockets: dict[str, tuple[web.WebSocketResponse, int]] = {}  # page id -> (ws, token generation)
         self._per_host: dict[str, int] = {}
         self._open = 0
+        self._pending = 0
+        self._pending_host: dict[str, int] = {}
+        self._tcp_current: dict[tuple[str, str], object] = {}
         self._servers: list[Any] = []
         self._transports: list[Any] = []
         self._closing = False
@@ -129,8 +134,10 @@ class Gateway:
         lim = self.limits
         if self._closing:
             return web.Response(status=503, text="perfcap serve is shutting down\n")
-        if self._open >= lim.max_connections or self._per_host.get(host, 0) >= lim.max_connections_per_host:
-            self.rejected.count("too many connections", host)
+        # Connections still waiting for their hello have their own, separate bound (and a short
+        # timeout), so strangers who never send a token cannot use up the phones' connections.
+        if self._pending >= lim.max_pending_hello or self._pending_host.get(host, 0) >= lim.max_connections_per_host:
+            self.rejected.count("too many connections", host, "waiting for hello")
             return web.Response(status=503, text="too many connections\n")
         # No aiohttp heartbeat: it re-arms on the close frame of a refused client and keeps the dead
         # socket ~30 s (a flood of refused connections then grows memory). The gateway's own pings
@@ -138,27 +145,39 @@ class Gateway:
         ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, heartbeat=None, autoping=True,
                                    compress=False, receive_timeout=None)
         await ws.prepare(request)
-        self._open += 1
-        self._per_host[host] = self._per_host.get(host, 0) + 1
         self.stats.connections += 1
         inbox: Inbox | None = None
         phone_id = ""
         ping_task: asyncio.Task[Any] | None = None
+        counted = False
+        self._pending += 1
+        self._pending_host[host] = self._pending_host.get(host, 0) + 1
         try:
-            hello = await self._hello(ws, host)
+            try:
+                hello = await self._hello(ws, host)
+            finally:
+                self._pending -= 1
+                _dec(self._pending_host, host)
             if hello is None:
                 return ws
+            if self._open >= lim.max_connections or self._per_host.get(host, 0) >= lim.max_connections_per_host:
+                self.rejected.count("too many connections", host)
+                await ws.close(code=CLOSE_TOO_MANY, message=b"too many connections")
+                return ws
+            self._open += 1
+            self._per_host[host] = self._per_host.get(host, 0) + 1
+            counted = True
             phone_id, info = hello
             admitted = self.registry.admit("page", phone_id, host, info)
             if admitted is None:
-                self.rejected.count("too many phones", host)
-                await ws.close(code=CLOSE_TOO_MANY, message=b"too many phones on this service")
+                self.rejected.count("phone not admitted", host, "too many phones, or its device cannot be made")
+                await ws.close(code=CLOSE_TOO_MANY, message=b"this service takes no more phones")
                 return ws
             name, inbox = admitted
             old = self._sockets.get(phone_id)
             self._sockets[phone_id] = (ws, self.tokens.generation)
             if old is not None and not old[0].closed:
-                await old[0].close(code=CLOSE_TOO_MANY, message=b"replaced by a newer connection of this phone")
+                await old[0].close(code=CLOSE_REPLACED, message=b"this phone connected again (another tab?)")
             t = self.clock.now_ns()
             inbox.put(Chunk(json.dumps(info, separators=(",", ":")).encode(), t, Direction.RX))
             await ws.send_str(json.dumps({"type": "welcome", "device": name, "ping_s": lim.ping_s}))
@@ -170,12 +189,9 @@ class Gateway:
                 ping_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await ping_task
-            self._open -= 1
-            n = self._per_host.get(host, 1) - 1
-            if n:
-                self._per_host[host] = n
-            else:
-                self._per_host.pop(host, None)
+            if counted:
+                self._open -= 1
+                _dec(self._per_host, host)
             if phone_id and self._sockets.get(phone_id, (None,))[0] is ws:
                 del self._sockets[phone_id]
                 if inbox is not None:
@@ -199,7 +215,7 @@ class Gateway:
             return None
         try:
             hello = json.loads(msg.data)
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: "[[[[..." nested beyond the parser
             hello = None
         if not isinstance(hello, dict) or hello.get("type") != "hello":
             self.rejected.count("malformed hello", host)
@@ -306,7 +322,7 @@ class Gateway:
         try:
             obj = json.loads(body)
             did = obj.get("deviceId") if isinstance(obj, dict) else None
-        except ValueError:
+        except (ValueError, RecursionError):
             did = None
         if not isinstance(did, str) or not did:
             self.rejected.count("malformed message", host, "sensorlogger body without deviceId")
@@ -314,7 +330,7 @@ class Gateway:
         rid = re.sub(r"[^A-Za-z0-9._\-]", "-", did)[:64]
         admitted = self.registry.admit("sensorlogger", rid, host, {"deviceId": did, "peer": host})
         if admitted is None:
-            self.rejected.count("too many phones", host, "sensorlogger")
+            self.rejected.count("phone not admitted", host, "sensorlogger")
             return web.json_response({"error": "too many phones on this service"}, status=503)
         admitted[1].put(Chunk(body, t, Direction.RX))
         self.stats.messages += 1
@@ -345,12 +361,19 @@ class Gateway:
                 return
             admitted = self.registry.admit(protocol, host, host, {"peer": host})
             if admitted is None:
-                self.rejected.count("too many phones", host, protocol)
+                self.rejected.count("phone not admitted", host, protocol)
                 return
             inbox = admitted[1]
+            me = object()
+            self._tcp_current[(protocol, host)] = me  # the newest connection of a host is its phone
             rate = RateLimit(self.limits.rate_hz * 4, self.limits.burst * 4, self.clock.now_ns())
+            idle_s = max(10.0 * self.limits.ping_s, 10.0)
             while not self._closing:
-                data = await reader.read(self.limits.max_message_bytes)
+                try:
+                    data = await asyncio.wait_for(reader.read(self.limits.max_message_bytes), idle_s)
+                except TimeoutError:
+                    self.rejected.count("silent connection", host, f"{protocol} TCP: nothing for {idle_s:g} s")
+                    break
                 if not data:
                     break
                 t = self.clock.now_ns()
@@ -359,7 +382,9 @@ class Gateway:
                     break
                 inbox.put(Chunk(data, t, Direction.RX))
                 self.stats.messages += 1
-            inbox.disconnect(f"{protocol} TCP connection from {host} closed")
+            if self._tcp_current.get((protocol, host)) is me:  # an older socket closing is not the phone leaving
+                del self._tcp_current[(protocol, host)]
+                inbox.disconnect(f"{protocol} TCP connection from {host} closed")
         except (ConnectionError, OSError) as exc:
             log.info("%s TCP client %s: %s", protocol, host, exc)
         finally:
@@ -378,6 +403,14 @@ class Gateway:
         for s in self._servers:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(s.wait_closed(), 2.0)
+
+
+def _dec(counts: dict[str, int], key: str) -> None:
+    n = counts.get(key, 1) - 1
+    if n > 0:
+        counts[key] = n
+    else:
+        counts.pop(key, None)
 
 
 class _DatagramIngest(asyncio.DatagramProtocol):
@@ -400,7 +433,7 @@ class _DatagramIngest(asyncio.DatagramProtocol):
                 return
             admitted = gw.registry.admit(self.protocol, host, host, {"peer": host})
             if admitted is None:
-                gw.rejected.count("too many phones", host, self.protocol)
+                gw.rejected.count("phone not admitted", host, self.protocol)
                 return
             entry = self._boxes[host] = (admitted[1], RateLimit(gw.limits.rate_hz, gw.limits.burst, t))
         inbox, rate = entry

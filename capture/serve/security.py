@@ -90,9 +90,14 @@ class TokenStore:
     def rotate(self) -> str:
         """Replace the token; the old one is refused from now on. Returns the new token."""
         with self._lock:
+            old = self._token
             self._token = self._new()
+            try:
+                self._save()  # stored first: a failed save must leave the old token working
+            except ConfigError:
+                self._token = old
+                raise
             self.generation += 1
-            self._save()
         log.warning("pairing token rotated; phones must pair again with the new link")
         return self._token
 

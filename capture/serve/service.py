@@ -65,6 +65,13 @@ def lan_address() -> str:
         s.close()
 
 
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host and not host.startswith("[") else host
+
+
+_PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
+
+
 class PhoneDevices:
     """Which device each phone is: created on first sight, the same one on every reconnect.
 
@@ -159,6 +166,9 @@ class ServeConfig:
     sessions_dir: str = "."
 
     def check(self) -> None:
+        if self.public_host and not _PUBLIC_HOST_RE.match(self.public_host):
+            raise ConfigError(f"public host {self.public_host!r} is not a host name or address (ASCII letters, digits,"
+                              " '.', '-', ':')")
         if not -1 <= self.control_port <= 65535:
             raise ConfigError(f"control port {self.control_port} is not a port number (0-65535, or -1 for none)")
         for port, what in ((self.port, "port"), (self.osc_port, "OSC port"),
@@ -215,6 +225,11 @@ class Service:
         self.hub_name = f"serve{next(_hub_ids)}"
         opts: dict[str, dict[str, Any]] = {"osc": {"map": config.osc_map},
                                            "hyperimu": {"sensors": config.hyperimu_sensors}}
+        self._check_phone_options(opts)
+        taken = {d.name for d in self.capture.devices} & set(config.names.values())
+        if taken:
+            self.capture.stop()
+            raise ConfigError(f"phone name(s) {', '.join(sorted(taken))} are already names of configured devices")
         self.phones = PhoneDevices(self.capture, self.hub_name, config.names, opts, config.max_phones)
         self.gateway = Gateway(self.phones, self.tokens, config.limits, clock)
         self.endpoints = Endpoints()
@@ -228,11 +243,41 @@ class Service:
         self.stopped = False
         self.report: Any = None
 
+    def _check_phone_options(self, opts: Mapping[str, Mapping[str, Any]]) -> None:
+        """Build each enabled token-less protocol's device once, so a bad map or sensor list is an
+        error now, not a log line per datagram later."""
+        from devices import open_device
+
+        enabled = {"osc": self.config.osc_port, "hyperimu": self.config.hyperimu_port or self.config.hyperimu_tcp_port}
+        for proto, on in enabled.items():
+            if not on:
+                continue
+            try:
+                open_device(DeviceSpec(url=f"net://check/{proto}/x", kind=PHONE_KINDS[proto], name="check",
+                                       options=dict(opts.get(proto, {}))))
+            except CaptureError as exc:
+                self.capture.stop()
+                raise ConfigError(f"{proto}: {exc}") from None
+
     # -- control ---------------------------------------------------------------------------------
-    def start_recording(self, path: str | None = None, overwrite: bool = False) -> str:
+    def start_recording(self, path: str | None = None, overwrite: bool = False, *, anywhere: bool = False) -> str:
+        """Start recording to ``path`` (default: a new file in ``sessions_dir``). Relative paths are
+        under ``sessions_dir``; unless ``anywhere`` (the operator's own command line), a path that
+        leaves ``sessions_dir`` is refused, since every paired phone holds the token.
+
+        Raises:
+            ConfigError: already recording, or the path leaves ``sessions_dir``.
+            SessionExistsError / SessionError: the file cannot be created.
+        """
+        base = os.path.realpath(self.config.sessions_dir)
         if path is None:
             stamp = int(MONOTONIC.wall_time_s())
-            path = os.path.join(self.config.sessions_dir, f"perfcap-{stamp}.mcap")
+            path = os.path.join(base, f"perfcap-{stamp}.mcap")
+        elif not anywhere:
+            full = os.path.realpath(os.path.join(base, path))
+            if os.path.commonpath([full, base]) != base:
+                raise ConfigError(f"{path!r} is outside the sessions directory {base}; give a name inside it")
+            path = full
         self.capture.start_recording(path, overwrite=overwrite, meta={"command": "perfcap serve"})
         log.warning("recording to %s", path)
         return path
@@ -314,7 +359,7 @@ class Service:
         if ep.page_url:
             ep.pair_url = f"{ep.page_url}#t={self.tokens.token}"
             scheme = "https" if self.config.tls else "http"
-            host = ep.page_url.split("://", 1)[1].split("/", 1)[0]
+            host = ep.page_url.split("://", 1)[1].split("/", 1)[0]  # HOST:PORT as in the page URL
             ep.sensorlogger_url = f"{scheme}://{host}/ingest/sensorlogger?token={self.tokens.token}"
 
     async def start(self) -> Endpoints:
@@ -341,11 +386,11 @@ class Service:
             port = await self._site(self.gateway.app(), cfg.host, cfg.port, ssl_ctx, "phone page")
             scheme = "https" if cfg.tls else "http"
             self.endpoints.port = port
-            self.endpoints.page_url = f"{scheme}://{public}:{port}/"
+            self.endpoints.page_url = f"{scheme}://{_url_host(public)}:{port}/"
             self._update_urls()
             if cfg.control_port >= 0:
                 cport = await self._site(control_app(self), cfg.control_host, cfg.control_port, None, "control API")
-                self.endpoints.control_url = f"http://{cfg.control_host}:{cport}/api"
+                self.endpoints.control_url = f"http://{_url_host(cfg.control_host)}:{cport}/api"
                 if cfg.control_host not in ("127.0.0.1", "::1", "localhost"):
                     log.warning("the control API listens on %s, not only on this machine; it still needs the token",
                                 cfg.control_host)
@@ -465,6 +510,10 @@ class Service:
         readers = [r for r in self.capture.readers if getattr(r.device.transport, "scheme", "") == "net"]
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(None, lambda: [r.join(10.0) for r in readers])
+        for key, box in box_hub.inboxes().items():
+            if len(box):  # a reader that did not finish in time: say what it leaves unrecorded
+                log.error("phone %s: %d received message(s) not decoded before shutdown (reader too slow)",
+                          key, len(box))
         self.report = await loop.run_in_executor(None, self.capture.stop)
         drop_hub(self.hub_name)
         return self.report

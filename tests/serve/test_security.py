@@ -278,9 +278,11 @@ def test_too_many_connections_per_host_get_503(serve):
             a, ma = await served.page(s, "conn-a")
             b, mb = await served.page(s, "conn-b")
             out["ok"] = [json.loads(ma.data)["type"], json.loads(mb.data)["type"]]
-            with pytest.raises(aiohttp.WSServerHandshakeError) as ei:
-                await served.page(s, "conn-c")
-            out["third"] = ei.value.status
+            # a third paired connection from the host: closed after its hello (4409); the pool of
+            # connections still waiting for a hello is bounded separately (503 before the upgrade)
+            c0, mc0 = await served.page(s, "conn-c")
+            out["third"] = (mc0.type, mc0.data)
+            await c0.close()
             await a.close()
             box = served.service.phones.hub.get("page/conn-a")
             for _ in range(250):  # the service has noticed the close (counted down before the disconnect)
@@ -294,8 +296,35 @@ def test_too_many_connections_per_host_get_503(serve):
         return out
 
     out = asyncio.run(go())
-    assert out == {"ok": ["welcome", "welcome"], "third": 503, "after": "welcome"}
+    assert out == {"ok": ["welcome", "welcome"], "third": (aiohttp.WSMsgType.CLOSE, CLOSE_TOO_MANY),
+                   "after": "welcome"}
     assert served.rejected() == {"too many connections": 1}
+
+
+def test_strangers_waiting_for_hello_cannot_use_up_the_phones_connections(serve):
+    """Sockets that never say hello have their own bound: beyond it they get 503, and a paired phone
+    still gets in."""
+    served = serve(limits=Limits(max_pending_hello=3, max_connections_per_host=8, hello_timeout_s=2.0))
+
+    async def go() -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        async with served.client() as s:
+            idle = [await s.ws_connect(served.ws_url, ssl=served.ssl()) for _ in range(3)]
+            with pytest.raises(aiohttp.WSServerHandshakeError) as ei:
+                await s.ws_connect(served.ws_url, ssl=served.ssl())
+            out["fourth_stranger"] = ei.value.status
+            for w in idle:
+                await w.close()
+            for _ in range(100):
+                if served.service.gateway._pending == 0:
+                    break
+                await asyncio.sleep(0.02)
+            ws, m = await served.page(s, "paired-after-strangers")
+            out["paired"] = json.loads(m.data)["type"]
+            await ws.close()
+        return out
+
+    assert asyncio.run(go()) == {"fourth_stranger": 503, "paired": "welcome"}
 
 
 def test_too_many_phones_closes_with_4409(serve):
@@ -313,7 +342,7 @@ def test_too_many_phones_closes_with_4409(serve):
     first, second = asyncio.run(go())
     assert first == "welcome"
     assert second == (aiohttp.WSMsgType.CLOSE, CLOSE_TOO_MANY)
-    assert served.rejected() == {"too many phones": 1}
+    assert served.rejected() == {"phone not admitted": 1}
     assert [d.name for d in served.service.capture.devices] == ["phone-onlyphon"]
 
 
@@ -390,7 +419,7 @@ def test_osc_accepts_only_allow_listed_sources(serve, free_port, tmp_path):
     send_udp("127.0.0.1", port, bad[3:], source="127.0.0.2")
     send_udp("127.0.0.1", port, good[5:], source="127.0.0.1")
     served.wait(lambda: served.rejected().get("source not allow-listed", 0) + served.service.gateway.stats.messages
-                >= len(good) + len(bad) or served.rejected().get("too many phones"), 5, "the datagrams")
+                >= len(good) + len(bad) or served.rejected().get("phone not admitted"), 5, "the datagrams")
     assert served.rejected() == {"source not allow-listed": len(bad)}
     assert served.service.gateway.stats.messages == len(good)
     assert [(d.name, d.kind) for d in served.service.capture.devices] == [("osc-127_0_0_1", "osc")]
@@ -411,7 +440,7 @@ def test_hyperimu_udp_and_tcp_accept_only_allow_listed_sources(serve, free_port,
     with socket.create_connection(("127.0.0.1", ep.hyperimu_tcp_port), timeout=5, source_address=("127.0.0.2", 0)) as c:
         assert c.recv(100) == b""
     send_udp("127.0.0.1", ep.hyperimu_port, rows, source="127.0.0.1")
-    served.wait(lambda: served.service.gateway.stats.messages >= len(rows) or served.rejected().get("too many phones"),
+    served.wait(lambda: served.service.gateway.stats.messages >= len(rows) or served.rejected().get("phone not admitted"),
                 5, "the allowed datagrams")
     assert served.rejected() == {"source not allow-listed": 3}
     assert served.service.gateway.stats.messages == len(rows)
