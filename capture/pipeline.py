@@ -43,6 +43,7 @@ class StreamStats(Subscriber):
     """A live consumer: per-stream counts, measured rate and sequence gaps (drops before the bus)."""
 
     accepts = frozenset({Sample, SampleBatch, DeviceEvent})
+    coalesce_s = 0.02  # counters read about once a second: no need to wake for every item
 
     #: events kept for the report (protocol-error events are counted per device, not kept: a device
     #: sending garbage would otherwise grow this without bound)

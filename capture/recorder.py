@@ -45,6 +45,7 @@ class SessionRecorder(Subscriber):
 
     accepts = EVERYTHING
     idle_interval_s = 0.05
+    coalesce_s = 0.02  # it writes in blocks anyway: no need to wake for every item
 
     def __init__(self, writer: SessionWriter, *, max_loss_s: float = 1.0, encode_interval_s: float = 0.1,
                  clock: Clock = MONOTONIC) -> None:
