@@ -180,8 +180,13 @@ class SimPagePhone:
         await asyncio.sleep(0.1)  # let the TLS transport finish closing before the loop ends (aiohttp advice)
 
     def stop(self) -> None:
-        if self._loop is not None:
-            self._loop.call_soon_threadsafe(self._stop.set)
+        """Ask a running phone to stop (thread-safe; harmless once it has ended)."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._stop.set)
+            except RuntimeError:  # its loop closed in between: it has ended
+                pass
 
 
 class PhoneThread:
@@ -207,7 +212,8 @@ class PhoneThread:
         return not self._thread.is_alive()
 
     def stop(self, timeout: float = 10.0) -> None:
-        self.phone.stop()
+        if self._thread.is_alive():
+            self.phone.stop()
         self._thread.join(timeout)
 
 

@@ -31,7 +31,7 @@ import pytest
 
 from capture.serve.gateway import Limits
 from capture.serve.service import ServeConfig, Service, ServiceThread
-from sim_devices.phone_client import SimPagePhone
+from sim_devices.phone_client import PhoneThread, SimPagePhone
 from sim_devices.phone_sim import page_hello
 
 log = logging.getLogger(__name__)
@@ -70,45 +70,7 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
         return int(s.getsockname()[1])
 
 
-class PhoneRunner:
-    """Runs a ``SimPagePhone`` on its own event loop in a thread, like ``PhoneThread``, but keeps the
-    loop alive for a moment after ``run()`` returns so the phone's TLS connection finishes closing.
-
-    ``PhoneThread`` ends ``asyncio.run`` right after the phone's ``ClientSession`` closes; the TLS
-    shutdown is then sometimes still pending and the socket is garbage-collected unclosed, a
-    ``ResourceWarning`` that ``filterwarnings=error`` turns into a random test error (see aiohttp's
-    "graceful shutdown" note). Reported as a bug in ``sim_devices/phone_client.py``.
-    """
-
-    def __init__(self, phone: SimPagePhone) -> None:
-        self.phone = phone
-        self._thread = threading.Thread(target=self._main, name=f"sim-{phone.phone_id}", daemon=True)
-
-    def _main(self) -> None:
-        async def body() -> None:
-            try:
-                await self.phone.run()
-            finally:
-                await asyncio.sleep(0.1)
-
-        try:
-            asyncio.run(body())
-        except BaseException as exc:  # noqa: BLE001 - the test reads phone.error
-            self.phone.error = exc
-
-    def start(self) -> PhoneRunner:
-        self._thread.start()
-        return self
-
-    def join(self, timeout: float | None = None) -> bool:
-        self._thread.join(timeout)
-        return not self._thread.is_alive()
-
-    def stop(self, timeout: float = 10.0) -> None:
-        if self._thread.is_alive():
-            with contextlib.suppress(RuntimeError):  # its loop closed meanwhile: it is ending anyway
-                self.phone.stop()
-        self._thread.join(timeout)
+PhoneRunner = PhoneThread  # a simulated phone on its own event loop in a thread
 
 
 @dataclass
