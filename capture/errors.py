@@ -15,6 +15,9 @@
      ├─ SessionError (.path)                      a session file cannot be written or read
      │   └─ SessionExistsError(SessionError, FileExistsError)
      ├─ TraceError (.path, .line)                 a text trace is malformed
+     ├─ CycleError                                 no clean cycle could be extracted
+     │   ├─ NoMotionError                          the input does not move
+     │   └─ NoPeriodFoundError                     the input moves but does not repeat (or too few loops)
      └─ RetargetError → InvalidTransitionError (.state, .event)
 
 Foreign exceptions are translated at the transport and file boundaries with ``raise ... from``.
@@ -108,6 +111,18 @@ class TraceError(CaptureError):
         super().__init__(where + message, source=path)
         self.path = path
         self.line = line
+
+
+class CycleError(CaptureError):
+    """No clean cycle could be extracted from the input."""
+
+
+class NoMotionError(CycleError):
+    """The input is constant (or every channel is): there is nothing to loop."""
+
+
+class NoPeriodFoundError(CycleError):
+    """The input moves but no period repeats consistently over at least two loops."""
 
 
 class RetargetError(CaptureError):
