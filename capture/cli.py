@@ -1,6 +1,7 @@
-"""``perfcap``: record, replay, inspect and export capture sessions; run the hardware-free demo.
+"""``perfcap``: record, replay, inspect and export capture sessions; extract motion cycles; run the
+hardware-free demo.
 
-Errors are one line on stderr and a non-zero exit (2 for bad input, 1 for a failed check,
+Errors are one line on stderr and a non-zero exit (2 for bad input, 1 for a failed check or no cycle,
 70 for an internal error, with ``--debug`` showing the traceback).
 """
 
@@ -18,6 +19,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -479,9 +481,261 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------
+# perfcap cycle: one clean loop from a take of several performed loops
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+CSV_TIME_COLUMNS = ("t", "time", "time_s", "t_s", "time[s]", "time (s)", "timestamp")
+EXPORT_TIMING_COLUMNS = ("seq", "t_host_ns", "t_device_ns", "t_bus_ns")
+EXIT_NO_CYCLE = 1  # the input was read but holds no cycle (as grep's 1 for "no match")
+
+
+@dataclass
+class _CycleInput:
+    """What ``perfcap cycle`` extracts from: times (s), values (n, C) and how to read the columns."""
+
+    source: str                          # the file, and the stream for a session
+    t: Any                               # (n,) seconds (a session's: from the stream's first sample)
+    values: Any                          # (n, C)
+    channels: list[str]
+    stream: str | None = None
+    quaternions: tuple[tuple[int, int, int, int], ...] = ()
+    angles: tuple[int, ...] = ()
+    angle_unit: str = "rad"
+    origin_ns: int | None = None         # a session's: the bus time of t = 0
+    dropped: int = 0                     # rows left out (an empty or non-finite value)
+
+
+def _split_columns(spec: str | None) -> list[str] | None:
+    if spec is None:
+        return None
+    names = [c.strip() for c in spec.split(",") if c.strip()]
+    if not names:
+        raise ConfigError("--columns needs at least one column name (A,B,...)")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--columns names a column twice: {spec}")
+    return names
+
+
+def _pick(available: list[str], wanted: list[str], what: str) -> list[int]:
+    idx = []
+    for name in wanted:
+        if name not in available:
+            raise ConfigError(f"no column {name!r} in {what}; its columns are: {', '.join(available)}")
+        idx.append(available.index(name))
+    return idx
+
+
+def _cycle_session_input(reader: Any, stream: str | None, columns: list[str] | None) -> _CycleInput:
+    import numpy as np
+
+    path = reader.path
+    batches = {n: reader.samples(n) for n in reader.streams}
+    filled = [n for n in reader.streams if len(batches[n].t_bus_ns) > 0]
+    listing = ", ".join(f"{n} ({reader.streams[n].kind})" for n in filled) or "none"
+    if stream is None:
+        if not filled:
+            raise ConfigError(f"{path}: the session holds no samples")
+        if len(filled) == 1:
+            stream = filled[0]
+        else:
+            for kinds in (("imu",), ("quat", "orientation"), ("euler",)):
+                of_kind = [n for n in filled if reader.streams[n].kind in kinds]
+                if len(of_kind) == 1:
+                    stream = of_kind[0]
+                    break
+                if of_kind:
+                    break
+        if stream is None:
+            raise ConfigError(f"{path} has {len(filled)} streams; choose one with --stream: {listing}")
+    if stream not in reader.streams:
+        raise ConfigError(f"{path} has no stream {stream!r}; its streams: {listing}")
+    info = reader.streams[stream]
+    b = batches[stream]
+    if len(b.t_bus_ns) == 0:
+        raise ConfigError(f"stream {stream} of {path} holds no samples; streams with samples: {listing}")
+    chans = list(info.channels)
+    if columns is not None:
+        idx = _pick(chans, columns, f"stream {stream}")
+    elif info.kind == "imu":  # the temperature is no part of the motion (and drifts on its own)
+        idx = [i for i, u in enumerate(info.units) if u != "degC"] or list(range(len(chans)))
+    else:
+        idx = list(range(len(chans)))
+    values = np.asarray(b.values, np.float64)[:, idx]
+    names = [chans[i] for i in idx]
+    quats: tuple[tuple[int, int, int, int], ...] = ()
+    angles: tuple[int, ...] = ()
+    unit = "rad"
+    if info.kind in ("quat", "orientation") and all(c in names for c in ("w", "x", "y", "z")):
+        w, x, y, z = (names.index(c) for c in ("w", "x", "y", "z"))
+        quats = ((w, x, y, z),)
+    elif info.kind == "euler":
+        units = {info.units[i] for i in idx}
+        angles = tuple(range(len(idx)))
+        unit = "deg" if units <= {"deg"} else "rad"
+    origin = int(b.t_bus_ns[0])
+    t = (np.asarray(b.t_bus_ns, np.int64) - origin) / 1e9
+    keep = np.all(np.isfinite(values), axis=1)
+    return _CycleInput(f"{path} {stream}", t[keep], values[keep], names, stream=stream, quaternions=quats, angles=angles,
+                       angle_unit=unit, origin_ns=origin, dropped=int((~keep).sum()))
+
+
+def _cycle_csv_input(path: str, columns: list[str] | None) -> _CycleInput:
+    import numpy as np
+
+    try:
+        with open(path, newline="") as f:
+            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path} is neither a perfcap session nor a text CSV file") from None
+    except (OSError, csv.Error) as exc:
+        raise ConfigError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if not rows:
+        raise ConfigError(f"{path} is empty: expected a CSV with a time column (s) and channel columns")
+
+    def number(x: str) -> float | None:
+        try:
+            return float(x)
+        except ValueError:
+            return None
+
+    header = any(number(c) is None for c in rows[0])
+    names = [c.strip() for c in rows[0]] if header else [f"c{i}" for i in range(len(rows[0]))]
+    body = rows[1:] if header else rows
+    if len(names) < 2:
+        raise ConfigError(f"{path}: expected a time column and at least one channel column, found one column")
+    lower = [n.lower() for n in names]
+    t_col, t_scale = 0, 1.0
+    for cand in CSV_TIME_COLUMNS:
+        if cand in lower:
+            t_col = lower.index(cand)
+            break
+    else:
+        if "t_bus_ns" in lower:  # a perfcap export
+            t_col, t_scale = lower.index("t_bus_ns"), 1e-9
+    if columns is not None:
+        idx = _pick(names, columns, path)
+        if t_col in idx:
+            raise ConfigError(f"--columns: {names[t_col]!r} is the time column")
+    else:
+        # (a perfcap export's timing columns and an IMU's temperature are no part of the motion)
+        idx = [i for i, n in enumerate(lower) if i != t_col and n not in EXPORT_TIMING_COLUMNS
+               and not n.endswith("[degc]")]
+        if not idx:
+            raise ConfigError(f"{path}: no channel columns besides the time column {names[t_col]!r}")
+    data = np.full((len(body), len(idx) + 1), np.nan)
+    for r, row in enumerate(body):
+        if len(row) != len(names):
+            raise ConfigError(f"{path} line {r + 1 + header}: {len(row)} fields where the header has {len(names)}")
+        for j, col in enumerate([t_col, *idx]):
+            cell = row[col].strip()
+            if cell:
+                v = number(cell)
+                if v is None:
+                    raise ConfigError(f"{path} line {r + 1 + header}, column {names[col]!r}: {cell!r} is not a number")
+                data[r, j] = v
+    keep = np.all(np.isfinite(data), axis=1)
+    data = data[keep]
+    if not len(data):
+        raise ConfigError(f"{path}: no rows with a time and every channel")
+    return _CycleInput(path, data[:, 0] * t_scale, data[:, 1:], [names[i] for i in idx],
+                       dropped=int((~keep).sum()))
+
+
+def _cycle_input(path: str, stream: str | None, columns: list[str] | None) -> _CycleInput:
+    if not os.path.exists(path):
+        raise ConfigError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise ConfigError(f"{path} is a directory, not a session or CSV file")
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if magic == MCAP_MAGIC:
+        from capture.session import SessionReader
+
+        return _cycle_session_input(SessionReader(path), stream, columns)
+    if stream is not None:
+        raise ConfigError(f"--stream is for perfcap sessions; {path} is not one (for a CSV, use --columns)")
+    return _cycle_csv_input(path, columns)
+
+
+def extract_cycle(inp: _CycleInput, seed: int = 0) -> Any:
+    """``cycles.extract`` on a read input, timed (``elapsed_ms`` is the extraction alone)."""
+    from dataclasses import replace
+
+    from cycles import extract
+
+    t0 = time.perf_counter()
+    cyc = extract(inp.t, inp.values, channels=inp.channels, quaternions=inp.quaternions, angles=inp.angles,
+                  angle_unit=inp.angle_unit, seed=seed)
+    return replace(cyc, elapsed_ms=(time.perf_counter() - t0) * 1e3)
+
+
+def write_cycle_report(cyc: Any, path: str, title: str) -> None:
+    """The report image, with its failures as one-line ``ConfigError`` s."""
+    try:
+        from cycles.report import write_report
+    except ImportError as exc:
+        raise ConfigError(f"the report needs matplotlib ({exc}); pip install 'matplotlib>=3.8'") from None
+    try:
+        write_report(cyc, path, title=title)
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"cannot write the report {path}: {exc}") from None
+
+
+def cmd_cycle(args: argparse.Namespace) -> int:
+    from capture.errors import CycleError
+
+    columns = _split_columns(args.columns)
+    inp = _cycle_input(args.input, args.stream, columns)
+    if len(inp.t) < 2:
+        raise ConfigError(f"{inp.source}: {len(inp.t)} sample(s); a cycle needs several loops of motion")
+    try:
+        cyc = extract_cycle(inp, args.seed)
+    except CycleError as exc:
+        print(f"perfcap: no cycle in {inp.source}: {exc}", file=sys.stderr)
+        return EXIT_NO_CYCLE
+    except ValueError as exc:
+        raise ConfigError(f"{inp.source}: {exc}") from None
+    if args.output:
+        try:
+            cyc.write_csv(args.output)
+        except OSError as exc:
+            raise ConfigError(f"cannot write {args.output}: {exc.strerror or exc}") from None
+    if args.report:
+        write_cycle_report(cyc, args.report, f"{inp.source}: {len(inp.channels)} channel(s)")
+    s = cyc.summary()
+    if args.json:
+        s.update({"input": args.input, "stream": inp.stream,
+                  "time_origin_ns": inp.origin_ns, "input_samples": len(inp.t),
+                  "rows_skipped": inp.dropped, "csv": args.output, "report": args.report})
+        out(json.dumps(s))
+        return 0
+    out(f"cycle: period {cyc.period_s:.4f} s from {cyc.loops} loops, confidence {cyc.confidence:.2f}, "
+        f"closure error {cyc.closure_error:.3g} sd, extracted in {cyc.elapsed_ms:.1f} ms")
+    origin = "s from the stream's first sample" if inp.origin_ns is not None else "s"
+    cuts = ", ".join(f"{c:.3f}" for c in cyc.cuts_s)
+    out(f"  input: {inp.source}, {len(inp.channels)} channel(s) ({', '.join(inp.channels[:8])}"
+        f"{', ...' if len(inp.channels) > 8 else ''}), {len(inp.t)} samples"
+        + (f" ({inp.dropped} rows with empty or non-finite values skipped)" if inp.dropped else ""))
+    out(f"  cuts in the input ({origin}): {cuts}")
+    for note in cyc.notes:
+        out(f"  note: {note}")
+    if args.output:
+        out(f"  loop written to {args.output} ({len(cyc.times_s)} rows: t, {len(cyc.channels)} channel(s))")
+    if args.report:
+        out(f"  report written to {args.report}")
+    return 0
+
+
+DEMO_LOOP_S = 1.2
 DEMO_DEVICES = [
-    # A WT901 on the wrist over USB: device clock 80 ppm fast, 2 ms of USB arrival jitter.
-    ("wrist", "synth://imu?rate=200&seed=1&drift_ppm=80&jitter_ms=2&truth=true"),
+    # A WT901 on the wrist over USB: device clock 80 ppm fast, 2 ms of USB arrival jitter. Its wearer
+    # repeats one gesture, each loop 1.2 s +- 8 % (the demo extracts the cycle from it).
+    ("wrist", f"synth://imu?rate=200&seed=1&drift_ppm=80&jitter_ms=2&truth=true&loop_s={DEMO_LOOP_S}"),
     # One on the ankle through an FTDI adapter: no time packets, 16 ms latency-timer bursts, a little line noise.
     ("ankle", "synth://imu?rate=200&seed=2&device_clock=false&burst_ms=16&garbage=0.005"),
     # One on the head whose clock passes midnight two seconds in (the WT901 clock wraps daily).
@@ -681,9 +935,50 @@ def cmd_demo(args: argparse.Namespace) -> int:
     else:
         out(f"replay differs from the recording: {ver.get('first_mismatch')}")
         return EXIT_CHECK_FAILED
+    _demo_cycle(reader, cap)
     out(f"\nnext: perfcap info {path}   |   perfcap replay {path} --speed 2   |   "
-        f"perfcap export {path} --format csv -o export/")
+        f"perfcap export {path} --format csv -o export/   |   perfcap cycle {path} --stream wrist/imu")
     return 0
+
+
+def _demo_cycle(reader: Any, cap: Any) -> None:
+    """The cycle of the wrist's repeated gesture, from the recorded session, against the simulator's
+    truth (the mean loop duration over the recorded span); the loop CSV and the report beside the
+    session. A failure is one line: the demo goes on."""
+    from capture.errors import CycleError
+
+    name = "wrist/imu"
+    folder = os.path.dirname(os.path.abspath(reader.path))
+    png, loop_csv = os.path.join(folder, "wrist_cycle.png"), os.path.join(folder, "wrist_cycle.csv")
+    try:
+        inp = _cycle_session_input(reader, name, None)
+        cyc = extract_cycle(inp)
+    except (CycleError, ConfigError, ValueError) as exc:
+        out(f"cycle: no cycle extracted from {name} ({exc})")
+        return
+    truth = ""
+    wrist = next((d for d in cap.devices if d.name == "wrist"), None)
+    tr = getattr(wrist, "transport", None)
+    motion, readings = getattr(tr, "motion", None), getattr(tr, "truth_ns", None)
+    if motion is not None and getattr(motion, "loop_s", None) and readings and inp.origin_ns is not None:
+        # bus time -> device seconds (the first reading is device second 0); the simulated mean loop
+        # duration over the recorded span, in host seconds as the bus times are
+        opts = getattr(tr, "opts", {})
+        drift = float(opts.get("drift_ppm", 0.0)) * 1e-6
+        lat_ns = float(opts.get("latency_ms", 0.0)) * 1e6
+        d0 = (inp.origin_ns - lat_ns - readings[0]) / 1e9 * (1.0 + drift)
+        d1 = d0 + float(inp.t[-1]) * (1.0 + drift)
+        mean_s = motion.mean_loop_s(d0, d1) / (1.0 + drift)
+        truth = f" (simulated: {mean_s:.4f} s mean loop, {100.0 * (cyc.period_s / mean_s - 1.0):+.2f} %)"
+    out(f"cycle: the wrist repeats a gesture ({DEMO_LOOP_S:g} s +- 8 % per loop): period {cyc.period_s:.4f} s"
+        f"{truth} from {cyc.loops} loops of {name}, confidence {cyc.confidence:.2f}, in {cyc.elapsed_ms:.0f} ms")
+    try:
+        cyc.write_csv(loop_csv)
+        write_cycle_report(cyc, png, f"perfcap demo: the wrist's gesture ({name})")
+    except (ConfigError, OSError) as exc:
+        out(f"  (the loop or its report could not be written: {exc})")
+        return
+    out(f"  loop written to {loop_csv}; report (the aligned loops and the cycle per channel) {png}")
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
@@ -1083,6 +1378,21 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
+
+    cy = sub.add_parser("cycle", help="one clean closed loop from a take of several performed loops",
+                        description="Extract one clean closed loop from a take in which a motion was performed"
+                        " several times. Exit 0 with the cycle, 1 when the input holds no cycle (no motion, or"
+                        " it does not repeat), 2 for bad input.")
+    cy.add_argument("input", metavar="INPUT", help="a perfcap session (.mcap) or a CSV: a time column in seconds"
+                    " (t, time or time_s, else the first column) and channel columns")
+    cy.add_argument("--stream", metavar="NAME", help="the session stream (default: its only one, or its only IMU"
+                    " stream)")
+    cy.add_argument("--columns", metavar="A,B,...", help="only these channels (CSV columns or stream channels)")
+    cy.add_argument("-o", "--output", metavar="LOOP.csv", help="write the loop as CSV (t, then the channels)")
+    cy.add_argument("--report", metavar="REPORT.png", help="draw the aligned input loops and the cycle per channel")
+    cy.add_argument("--json", action="store_true", help="one JSON object")
+    cy.add_argument("--seed", type=int, default=0, help="seed of the extraction's random choices (default 0)")
+    cy.set_defaults(func=cmd_cycle)
 
     dv = sub.add_parser("devices", help="list serial ports and HID devices present, device kinds and transports")
     dv.add_argument("--json", action="store_true", help="one JSON object")

@@ -1,7 +1,9 @@
 """``synth://`` - synthetic devices that encode generated motion through a real codec and deliver
 the bytes through the Transport interface, with the timing faults real links have.
 
-``synth://imu?rate=200&seed=1`` is a WitMotion WT901 waving on a wrist;
+``synth://imu?rate=200&seed=1`` is a WitMotion WT901 waving on a wrist; with ``loop_s=1.2`` the
+wrist repeats one gesture, each loop 1.2 s +- ``loop_jitter`` (8 %) long (a performance to extract a
+cycle from; ``transport.motion.mean_loop_s(t0, t1)`` is the truth);
 ``synth://imu?csv=PATH`` plays a recorded IMU CSV instead (x-io/Fusion layout: time in s, gyroscope
 x/y/z in deg/s, accelerometer x/y/z in g), at the recording's own timestamps, gaps included. Options model the link:
 device clock drift, fixed latency, arrival jitter, FTDI-style bursts, garbage bytes, an unplug
@@ -52,6 +54,9 @@ class SynthTransport(Transport):
         "unplug_for": Option(float, 1.0, "and comes back after this many seconds", min=0.0),
         "truth": Option(bool, False, "keep true host times of readings (tests)"),
         "csv": Option(str, "", "play this IMU CSV (time s, gyro xyz deg/s, accel xyz g) instead of synthetic motion"),
+        "loop_s": Option(float, 0.0, "repeat one gesture, each loop this many seconds on average (0 = free waving)",
+                         min=0.0, max=3600.0),
+        "loop_jitter": Option(float, 0.08, "each loop lasts loop_s times 1 +- up to this", min=0.0, max=0.5),
     }
 
     def __init__(self, address: str, options: Mapping[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
@@ -60,7 +65,7 @@ class SynthTransport(Transport):
             raise ConfigError(f"synth://{address}: unknown synthetic device; known: {', '.join(KINDS)}"
                               f" (form {self.usage})", source=self.url)
         o = self.opts
-        self.motion = WavingMotion(o["seed"])
+        self.motion = WavingMotion(o["seed"], loop_s=o["loop_s"] or None, loop_jitter=o["loop_jitter"])
         self._csv = _load_imu_csv(o["csv"], self.url) if o["csv"] else None
         self.codec = WitMotionCodec()
         if self._csv is not None:
