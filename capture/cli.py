@@ -855,6 +855,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     try:
         service, st = _start_demo_service([f"{n}={u}" for n, u in devices], path, args.overwrite)
         cap = service.capture
+        follow = _demo_follower(cap)
         try:
             phone = _start_demo_phone(service, args.duration)
             t0 = time.monotonic()
@@ -936,9 +937,35 @@ def cmd_demo(args: argparse.Namespace) -> int:
         out(f"replay differs from the recording: {ver.get('first_mismatch')}")
         return EXIT_CHECK_FAILED
     _demo_cycle(reader, cap)
+    if follow is not None:
+        first = follow[1]
+        if first:
+            t_first, c_first = first[0]
+            out(f"  live: following wrist/imu on the bus, the first cycle came {t_first:.1f} s into the take"
+                f" ({c_first.loops} loops, {c_first.period_s:.3f} s), then improved {len(first) - 1} time(s)")
+        else:
+            out(f"  live: following wrist/imu on the bus, no cycle during the take"
+                f" ({follow[0].extractor.last_error or 'too few loops'})")
     out(f"\nnext: perfcap info {path}   |   perfcap replay {path} --speed 2   |   "
         f"perfcap export {path} --format csv -o export/   |   perfcap cycle {path} --stream wrist/imu")
     return 0
+
+
+def _demo_follower(cap: Any) -> tuple[Any, list[tuple[float, Any]]] | None:
+    """Streaming cycle extraction on the live bus while the demo runs: when did a cycle first come,
+    and how often did it improve."""
+    from capture.cycle_follow import CycleFollower
+
+    got: list[tuple[float, Any]] = []
+    t0 = time.monotonic()
+    try:
+        follower = CycleFollower("wrist/imu", lambda c: got.append((time.monotonic() - t0, c)),
+                                 columns=[0, 1, 2, 3, 4, 5])
+        cap.subscribe(follower, name="cycle-follower")
+    except (CaptureError, ValueError) as exc:
+        log.warning("no live cycle follower: %s", exc)
+        return None
+    return follower, got
 
 
 def _demo_cycle(reader: Any, cap: Any) -> None:

@@ -75,6 +75,7 @@ class ExtractOptions:
         max_misses: consecutive loops that may fail to match before a chain ends.
         min_hit_rate: smallest share of loops (between the first and last match) that must match.
         min_coverage: smallest share of the moving part of the take the matched loops must span.
+        min_agreement: smallest share of the seeds whose period agrees with the median.
         gap_factor: stamps further apart than this many median intervals split the take.
         period_estimate: ``"auto"``, ``"mean"`` (duration over loops spanned) or ``"median"``.
         median_from_loops: in ``"auto"``, use the median loop duration from this many loops on.
@@ -94,6 +95,7 @@ class ExtractOptions:
     max_misses: int = 4
     min_hit_rate: float = 0.6
     min_coverage: float = 0.5
+    min_agreement: float = 0.6
     gap_factor: float = 3.0
     period_estimate: str = "auto"
     median_from_loops: int = 8
@@ -643,7 +645,8 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
     for c in evaluated:
         c.coverage = float(c.best.cuts[-1] - c.best.cuts[0]) / max(extent, 1.0)
     valid = [c for c in evaluated if c.consistency >= _needed_r(opts, len(c.loops))
-             and c.hit_rate >= opts.min_hit_rate and c.coverage >= opts.min_coverage]
+             and c.hit_rate >= opts.min_hit_rate and c.coverage >= opts.min_coverage
+             and c.agreement >= opts.min_agreement]
     if not valid:
         best = max(evaluated, key=lambda c: c.score)
         why = []
@@ -652,6 +655,8 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
                        f" needs {_needed_r(opts, len(best.loops)):.2f})")
         if best.hit_rate < opts.min_hit_rate:
             why.append(f"only {best.hit_rate:.0%} of its loops could be cut (needs {opts.min_hit_rate:.0%})")
+        if best.agreement < opts.min_agreement:
+            why.append(f"only {best.agreement:.0%} of the random seeds agree on it (needs {opts.min_agreement:.0%})")
         if best.coverage < opts.min_coverage:
             why.append(f"its loops span only {best.coverage:.0%} of the motion (needs {opts.min_coverage:.0%})")
         raise NoPeriodFoundError(f"no consistent period: the best candidate ({best.period * work.dt:.3g} s) "

@@ -265,3 +265,6 @@ def test_demo_extracts_the_wrists_cycle(tmp_path):
     with open(tmp_path / "wrist_cycle.csv", newline="") as f:
         assert next(csv.reader(f)) == ["t", "ax", "ay", "az", "gx", "gy", "gz"]
     assert str(tmp_path / "wrist_cycle.png") in p.stdout
+    # the streaming follower on the live bus had a cycle during the take
+    live = next(ln for ln in p.stdout.splitlines() if "live: following wrist/imu" in ln)
+    assert "the first cycle came" in live, live
