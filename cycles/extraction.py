@@ -17,15 +17,23 @@ The method is Ciccone 2019 (ETH Diss. 25792) §5.3, with the proposals and fixes
    instant (minimum of the descriptor distance d_D, eq. 5.1-5.2) near the previous match plus the
    current tempo. A loop that does not match (a turn, a pause) is a miss, not the end; the tempo is
    tracked, so drift does not break it. Each seed gives cut points; the period is the median over seeds.
-5. **Acceptance**: a candidate is accepted only if its loops, averaged, explain the motion
-   (consistency R >= ``min_consistency``) and no shorter candidate does about as well; so neither half
-   nor double periods come out, and input that does not repeat raises :class:`NoPeriodFoundError`.
-6. **Correspondence and averaging** (eq. 5.4): anchors evenly spaced in a reference loop are matched by
-   d_D in every loop; each loop is warped (monotone PCHIP) so the anchors share one time, and the loops
-   are averaged; loops that deviate far more than the others are left out (and said so).
+5. **Acceptance**: a candidate needs consistent loops (R >= ``min_consistency``, a little less with
+   many loops; R is measured with the motion's drift over one period removed, so walking on in world
+   coordinates still repeats while a ramp or a random walk does not), found in most loops
+   (``min_hit_rate``) over most of the moving take (``min_coverage``), and agreed on by most seeds
+   (``min_agreement``). The shortest such candidate wins if it repeats about as well as the best one
+   or well enough with the drift left in: a multiple of the period repeats as well as the period, only
+   a wrong sub-period alternates. So neither half nor double periods come out, and input that does not
+   repeat raises :class:`NoPeriodFoundError`.
+6. **Cut refinement, correspondence and averaging** (eq. 5.4): each cut is moved to where the data
+   around it best fits the first average loop (a matched filter over half a loop, not a single
+   instant). Anchors evenly spaced in a reference loop are matched by d_D in every loop; each loop is
+   warped (monotone PCHIP) so the anchors share one time, and the loops are averaged; loops that
+   deviate far more than the others (a turn, a stumble) are left out, and said so.
 7. **Period** (refined, §1.2 "Bias"): with few loops, the take's duration over the number of loops it
-   spans, counting the partial loops at both ends by their matched phase (the mean loop duration);
-   with ``median_from_loops`` loops or more, the median loop duration (robust to turns and stops).
+   spans, counting the partial loops at both ends by their matched share of a loop (the mean loop
+   duration); from ``median_from_loops`` loops on, the interquartile mean of the averaged loops'
+   durations, each averaged over the seeds that cut it (robust to turns and stops).
 8. **Stitching** (eq. 5.5): the end gap is spread linearly so the loop closes exactly; quaternions are
    mapped back. The :class:`~cycles.cycle.Cycle` evaluates it with a periodic cubic spline.
 
@@ -130,7 +138,7 @@ class _Work:
 
 def _prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]], angles: Sequence[int],
              angle_unit: str, gap_factor: float) -> _Work:
-    n, c = v.shape
+    c = v.shape[1]
     notes: list[str] = []
     finite = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
     if not finite.all():
@@ -217,7 +225,7 @@ def _prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]],
 
     steps = np.diff(t)
     if np.max(np.abs(steps - dt)) > 1e-3 * dt:
-        m = int(math.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
+        m = math.floor((t[-1] - t[0]) / dt + 1e-9) + 1
         grid = t[0] + dt * np.arange(m)
         x = _interp_rows(t, x, grid)
     return _Work(t0=float(t[0]), dt=dt, x=np.ascontiguousarray(x), columns=columns, q_refs=q_refs,
@@ -246,7 +254,7 @@ def _at_positions(x: np.ndarray, pos: np.ndarray) -> np.ndarray:
 def _reduce(z: np.ndarray, r: int, rng: np.random.Generator) -> np.ndarray:
     """``z`` projected on (about) its top-``r`` principal subspace: same row distances up to the
     variance left out. A randomised range finder (Halko et al. 2011)."""
-    n, d = z.shape
+    d = z.shape[1]
     if d <= r:
         return z
     omega = rng.standard_normal((d, r + 8))
@@ -261,7 +269,7 @@ def _acf_candidates(feat: np.ndarray, lo: int, hi: int, limit: int) -> list[floa
     ``feat``, in increasing lag order."""
     n = feat.shape[0]
     f = feat - feat.mean(axis=0)
-    nfft = 1 << int(math.ceil(math.log2(2 * n)))
+    nfft = 1 << math.ceil(math.log2(2 * n))
     spec = np.fft.rfft(f, nfft, axis=0)
     ac = np.fft.irfft(np.sum(spec.real ** 2 + spec.imag ** 2, axis=1), nfft)[:n]
     if not ac[0] > 0:
@@ -337,8 +345,8 @@ def _chain(d: np.ndarray, seed: int, thr: float, tau: float, opts: ExtractOption
             k += direction
             pred = pos + direction * t_loc
             half = max(2.0, opts.search * t_loc)
-            lo = int(math.floor(pred - half))
-            hi = int(math.ceil(pred + half))
+            lo = math.floor(pred - half)
+            hi = math.ceil(pred + half)
             if lo < margin or hi > n - 1 - margin:
                 lo, hi = max(lo, margin), min(hi, n - 1 - margin)
                 if hi - lo < half:      # most of the window is off the take
@@ -428,7 +436,7 @@ def _detrended(z: np.ndarray, tau: float) -> np.ndarray:
     on in world coordinates still repeats, a ramp or a random walk is left with nothing that does, and
     at a wrong (half) period the slower part of the motion stays in and keeps the loops unlike."""
     n = z.shape[0]
-    w = max(1, int(round(tau)))
+    w = max(1, round(tau))
     c = np.zeros((n + 1, z.shape[1]))
     np.cumsum(z, axis=0, out=c[1:])
     i = np.arange(n)
@@ -607,7 +615,7 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
     k = opts.k
     h, g = descriptors(z, work.dt, k)
     margin = k + 2
-    t_min = max(2 * k + 2, int(math.ceil(opts.min_period_s / work.dt)) if opts.min_period_s else 0)
+    t_min = max(2 * k + 2, math.ceil(opts.min_period_s / work.dt) if opts.min_period_s else 0)
     t_max = (n - 1) // 2
     if opts.max_period_s:
         t_max = min(t_max, int(opts.max_period_s / work.dt))
@@ -698,7 +706,7 @@ def _align(h: np.ndarray, g: np.ndarray, loops: list[tuple[float, float]], perio
     frac = np.arange(1, n_anchor + 1) / (n_anchor + 1)
     anchor_pos = ra + frac * (rb - ra)
     anchor_idx = np.clip(np.rint(anchor_pos).astype(np.int64), 0, n - 1)
-    m_t = max(2, int(math.ceil(period / 8.0)))
+    m_t = max(2, math.ceil(period / 8.0))
     src = np.empty((len(loops), n_anchor + 2))
     eps = 1e-3
     for li, (a, b) in enumerate(loops):
@@ -707,12 +715,12 @@ def _align(h: np.ndarray, g: np.ndarray, loops: list[tuple[float, float]], perio
             src[li, 1:-1] = anchor_pos
             continue
         prop = a + frac * (b - a)
-        a_lo, a_hi = int(math.ceil(a)) + 1, min(int(math.floor(b)) - 1, n - 2)
+        a_lo, a_hi = math.ceil(a) + 1, min(math.floor(b) - 1, n - 2)
         dl = distance_rows(h, g, anchor_idx, slice(a_lo, a_hi + 1)) if a_hi > a_lo else None
         floor = 0.02 * np.percentile(dl, 25.0, axis=1) if dl is not None else None
         for q in range(n_anchor):
-            lo = max(int(math.floor(prop[q])) - m_t, a_lo)
-            hi = min(int(math.ceil(prop[q])) + m_t, a_hi)
+            lo = max(math.floor(prop[q]) - m_t, a_lo)
+            hi = min(math.ceil(prop[q]) + m_t, a_hi)
             if hi <= lo or dl is None:
                 src[li, q + 1] = prop[q]
                 continue
@@ -746,13 +754,13 @@ def _refine_cuts(z: np.ndarray, cuts: np.ndarray, mean0: np.ndarray, per: float)
     n = z.shape[0]
     m0 = mean0.shape[0] - 1
     loop = mean0[:-1]
-    w = max(3, int(round(per / 4.0)))
-    s_max = max(2, int(math.ceil(per / 8.0)))
+    w = max(3, round(per / 4.0))
+    s_max = max(2, math.ceil(per / 8.0))
     shifts = np.arange(-s_max, s_max + 1, dtype=np.float64)
     rel = np.arange(-w, w + 1)
     out = cuts.astype(np.float64).copy()
     for i, c in enumerate(cuts):
-        ci = int(round(c))
+        ci = round(c)
         idx = ci + rel
         if idx[0] < 0 or idx[-1] > n - 1:
             continue
@@ -779,7 +787,7 @@ def _finish(work: _Work, x: np.ndarray, z: np.ndarray, h: np.ndarray, g: np.ndar
     notes = list(work.notes)
     # Refine the cut points against the first average loop (a matched filter over a quarter loop each
     # side, instead of the seed's single instant), then cut, align and judge again.
-    m_r = max(16, int(round(cand.period)))
+    m_r = max(16, round(cand.period))
     mean0 = _at_positions(z, cand.alignment.positions(np.linspace(0.0, 1.0, m_r + 1)).reshape(-1))
     mean0 = mean0.reshape(len(cand.alignment.loops), m_r + 1, -1).mean(axis=0)
     cand.best.cuts = _refine_cuts(z, cand.best.cuts, mean0, cand.period)
@@ -801,7 +809,7 @@ def _finish(work: _Work, x: np.ndarray, z: np.ndarray, h: np.ndarray, g: np.ndar
     warps = [PchipInterpolator(al.target, row) for row in al.src]
     # period: mean over the loops spanned, or median loop duration
     period_s = _period(work, z, cand, loops, warps, opts, total_var)
-    m = max(8, int(round(period_s / work.dt)))
+    m = max(8, round(period_s / work.dt))
     u = np.linspace(0.0, 1.0, m + 1)
     positions = np.stack([w(u) for w in warps])
     # average (eq. 5.4); rotation vectors about the take's mean rotation average as an approximate
@@ -878,14 +886,14 @@ def _period(work: _Work, z: np.ndarray, cand: _Candidate, loops: list[tuple[floa
     per = (last - first) / span_loops
     # The partial loops at both ends count by the share of a loop they hold: the whole end segment is
     # matched against the average loop's last (head) or first (tail) part, stretched to fit.
-    m0 = max(16, int(round(float(np.median(durations)))))
+    m0 = max(16, round(float(np.median(durations))))
     u0 = np.linspace(0.0, 1.0, m0 + 1)
     mean0 = _at_positions(z, np.concatenate([w(u0) for w in warps])).reshape(len(warps), m0 + 1, -1).mean(axis=0)
     n = z.shape[0]
     extra = 0.0
     t_first, t_last = first, last
     for end in ("head", "tail"):
-        seg = z[0:int(math.floor(first)) + 1] if end == "head" else z[int(math.ceil(last)):n]
+        seg = z[0:math.floor(first) + 1] if end == "head" else z[math.ceil(last):n]
         if seg.shape[0] < 4 or seg.shape[0] >= 1.3 * per:
             continue   # nothing there, or more than a loop of something else (a pause, a turn)
         s01 = np.linspace(0.0, 1.0, seg.shape[0])[None, :]
@@ -909,7 +917,7 @@ def _period(work: _Work, z: np.ndarray, cand: _Candidate, loops: list[tuple[floa
         f = float(fine[fi])
         if 0 < fi < fine.size - 1:
             f += parabolic_offset(err[fi - 1], err[fi], err[fi + 1]) * float(fine[1] - fine[0])
-        log.debug("%s: f %.3f err %.4f var %.4f ratio %.3f", end, f, err[fi], total_var, seg.shape[0] / (f * per))
+        log.debug("%s partial loop: %.3f of a loop, misfit %.3g", end, f, err[fi])
         # a stretch that does not follow the loop (a pause before the first loop) does not count
         if err[fi] > 0.1 * total_var or not 0.7 <= seg.shape[0] / (f * per) <= 1.4:
             continue
