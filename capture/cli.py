@@ -484,7 +484,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 # perfcap cycle: one clean loop from a take of several performed loops
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-CSV_TIME_COLUMNS = ("t", "time", "time_s", "t_s", "time[s]", "time (s)", "timestamp")
+CSV_TIME_COLUMNS = ("seconds_elapsed", "t", "time_s", "t_s", "time[s]", "time (s)", "time", "timestamp")
 EXPORT_TIMING_COLUMNS = ("seq", "t_host_ns", "t_device_ns", "t_bus_ns")
 EXIT_NO_CYCLE = 1  # the input was read but holds no cycle (as grep's 1 for "no match")
 
@@ -526,9 +526,12 @@ def _pick(available: list[str], wanted: list[str], what: str) -> list[int]:
 
 
 def _cycle_session_input(reader: Any, stream: str | None, columns: list[str] | None) -> _CycleInput:
-    import numpy as np
 
     path = reader.path
+    if stream is not None and stream in reader.streams:
+        b = reader.samples(stream)          # only the stream asked for (sessions can be large)
+        if len(b.t_bus_ns):
+            return _session_stream_input(reader, stream, b, columns)
     batches = {n: reader.samples(n) for n in reader.streams}
     filled = [n for n in reader.streams if len(batches[n].t_bus_ns) > 0]
     listing = ", ".join(f"{n} ({reader.streams[n].kind})" for n in filled) or "none"
@@ -549,10 +552,17 @@ def _cycle_session_input(reader: Any, stream: str | None, columns: list[str] | N
             raise ConfigError(f"{path} has {len(filled)} streams; choose one with --stream: {listing}")
     if stream not in reader.streams:
         raise ConfigError(f"{path} has no stream {stream!r}; its streams: {listing}")
-    info = reader.streams[stream]
     b = batches[stream]
     if len(b.t_bus_ns) == 0:
         raise ConfigError(f"stream {stream} of {path} holds no samples; streams with samples: {listing}")
+    return _session_stream_input(reader, stream, b, columns)
+
+
+def _session_stream_input(reader: Any, stream: str, b: Any, columns: list[str] | None) -> _CycleInput:
+    import numpy as np
+
+    path = reader.path
+    info = reader.streams[stream]
     chans = list(info.channels)
     if columns is not None:
         idx = _pick(chans, columns, f"stream {stream}")
@@ -583,8 +593,14 @@ def _cycle_csv_input(path: str, columns: list[str] | None) -> _CycleInput:
     import numpy as np
 
     try:
-        with open(path, newline="") as f:
-            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+        with open(path, newline="", encoding="utf-8-sig") as f:   # (a BOM is not part of the first name)
+            head = f.read(8192)
+            f.seek(0)
+            try:
+                dialect: Any = csv.Sniffer().sniff(head, delimiters=",;\t")
+            except csv.Error:
+                dialect = csv.excel
+            rows = [r for r in csv.reader(f, dialect) if r and any(c.strip() for c in r)]
     except UnicodeDecodeError:
         raise ConfigError(f"{path} is neither a perfcap session nor a text CSV file") from None
     except (OSError, csv.Error) as exc:
@@ -598,9 +614,13 @@ def _cycle_csv_input(path: str, columns: list[str] | None) -> _CycleInput:
         except ValueError:
             return None
 
-    header = any(number(c) is None for c in rows[0])
+    header = any(number(c) is None for c in rows[0] if c.strip())
     names = [c.strip() for c in rows[0]] if header else [f"c{i}" for i in range(len(rows[0]))]
     body = rows[1:] if header else rows
+    # a trailing delimiter on every line makes an empty, unnamed column: drop it
+    while len(names) > 1 and not names[-1] and all(len(r) == len(names) and not r[-1].strip() for r in body):
+        names.pop()
+        body = [r[:-1] for r in body]
     if len(names) < 2:
         raise ConfigError(f"{path}: expected a time column and at least one channel column, found one column")
     lower = [n.lower() for n in names]
@@ -617,9 +637,10 @@ def _cycle_csv_input(path: str, columns: list[str] | None) -> _CycleInput:
         if t_col in idx:
             raise ConfigError(f"--columns: {names[t_col]!r} is the time column")
     else:
-        # (a perfcap export's timing columns and an IMU's temperature are no part of the motion)
+        # (a perfcap export's timing columns, other clocks (Sensor Logger's epoch ns 'time' beside its
+        # 'seconds_elapsed') and an IMU's temperature are no part of the motion)
         idx = [i for i, n in enumerate(lower) if i != t_col and n not in EXPORT_TIMING_COLUMNS
-               and not n.endswith("[degc]")]
+               and n not in CSV_TIME_COLUMNS and not n.endswith("[degc]")]
         if not idx:
             raise ConfigError(f"{path}: no channel columns besides the time column {names[t_col]!r}")
     data = np.full((len(body), len(idx) + 1), np.nan)
@@ -637,6 +658,8 @@ def _cycle_csv_input(path: str, columns: list[str] | None) -> _CycleInput:
     data = data[keep]
     if not len(data):
         raise ConfigError(f"{path}: no rows with a time and every channel")
+    if t_scale == 1.0 and len(data) > 2 and float(np.median(np.diff(data[:, 0]))) >= 1e5:
+        t_scale = 1e-9   # steps of more than a day: the time column counts nanoseconds (an epoch clock)
     return _CycleInput(path, data[:, 0] * t_scale, data[:, 1:], [names[i] for i in idx],
                        dropped=int((~keep).sum()))
 

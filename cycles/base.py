@@ -149,7 +149,11 @@ class CycleExtractor:
             return []
         self.last_error = None
         best = self.best
-        if best is None or (cyc.loops > best.loops and cyc.confidence >= best.confidence - 0.05) \
+        # the best cycle goes stale when the performer changed the motion: its loops have left the
+        # window, or the new period disagrees with it
+        stale = best is not None and (float(best.loop_spans_s[0, 0]) < float(b.t[0])
+                                      or abs(cyc.period_s / best.period_s - 1.0) > 0.1)
+        if best is None or stale or (cyc.loops > best.loops and cyc.confidence >= best.confidence - 0.05) \
                 or cyc.confidence > best.confidence + 0.02:
             self.best = cyc
             return [cyc]

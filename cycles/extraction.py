@@ -45,9 +45,10 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import signal
 from scipy.interpolate import PchipInterpolator
 from scipy.spatial.transform import Rotation
 
@@ -80,12 +81,15 @@ class ExtractOptions:
         min_period_s, max_period_s: bounds on the period (default: 2k+2 samples .. half the take).
         search: half-width of the search window around each predicted occurrence, in periods.
         max_misses: consecutive loops that may fail to match before a chain ends.
+        max_rate_hz, work_rate_hz: inputs sampled faster than ``max_rate_hz`` are matched at about
+            ``work_rate_hz`` (low-passed and decimated); the loop keeps the input's rate.
         min_hit_rate: smallest share of loops (between the first and last match) that must match.
         min_coverage: smallest share of the moving part of the take the matched loops must span.
         min_agreement: smallest share of the seeds whose period agrees with the median.
         gap_factor: stamps further apart than this many median intervals split the take.
         period_estimate: ``"auto"``, ``"mean"`` (duration over loops spanned) or ``"median"``.
-        median_from_loops: in ``"auto"``, use the median loop duration from this many loops on.
+        median_from_loops: in ``"auto"``, use the robust (interquartile mean) loop duration from this
+            many loops on, when some loops were left out or missed.
         keep_aligned: keep the time-aligned input loops in the result (the report draws them).
     """
 
@@ -100,6 +104,8 @@ class ExtractOptions:
     max_period_s: float | None = None
     search: float = 0.15
     max_misses: int = 4
+    max_rate_hz: float = 250.0
+    work_rate_hz: float = 200.0
     min_hit_rate: float = 0.6
     min_coverage: float = 0.5
     min_agreement: float = 0.6
@@ -136,7 +142,7 @@ class _Work:
 
 
 def _prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]], angles: Sequence[int],
-             angle_unit: str, gap_factor: float) -> _Work:
+             angle_unit: str, gap_factor: float, min_gap_s: float = 0.1) -> _Work:
     c = v.shape[1]
     notes: list[str] = []
     finite = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
@@ -156,15 +162,18 @@ def _prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]],
     # but measured against the 95th percentile when the stamps are irregular by nature (a phone's
     # sensor events), so ordinary long intervals do not split the take.
     med = float(np.median(dt_all))
+    # Short holds (a mouse reports only changes, so it is silent while the hand turns round) are not
+    # gaps: nothing shorter than min_gap_s splits the take; it is interpolated over.
     usual = max(med, float(np.percentile(dt_all, 95)) if np.percentile(dt_all, 95) > 1.5 * med else med)
-    gaps = np.flatnonzero(dt_all > gap_factor * usual)
+    gap_at = max(gap_factor * usual, min_gap_s)
+    gaps = np.flatnonzero(dt_all > gap_at)
     dt = med if usual == med else float(np.mean(dt_all[dt_all <= gap_factor * usual]))
     if gaps.size:
         bounds = np.concatenate([[0], gaps + 1, [t.size]])
         spans = t[bounds[1:] - 1] - t[bounds[:-1]]
         b = int(np.argmax(spans))
         lo, hi = int(bounds[b]), int(bounds[b + 1])
-        notes.append(f"the take has {gaps.size} gap(s) longer than {gap_factor:g} sample intervals (the longest"
+        notes.append(f"the take has {gaps.size} gap(s) longer than {gap_at:.3g} s (the longest"
                      f" {float(dt_all[gaps].max()):.3g} s); used the longest stretch without one,"
                      f" {float(t[lo]):.3f}-{float(t[hi - 1]):.3f} s")
         t, v = t[lo:hi], v[lo:hi]
@@ -336,7 +345,10 @@ def _seed_matches(dseed: np.ndarray, seeds: np.ndarray, k: int) -> list[tuple[np
 
 def _prune(d: np.ndarray, mins: np.ndarray, thr: float) -> tuple[np.ndarray, float]:
     if mins.size >= 4:
-        logd = np.log(np.maximum(d[mins], 1e-300))
+        # floored well below any real match: exact zeros of the product (a noise-free sine's mirror
+        # instants) must not become a class of their own and leave the threshold at nothing
+        floor = max(1e-6 * float(np.median(d)), 1e-300)
+        logd = np.log(np.maximum(d[mins], floor))
         cut = otsu_threshold(logd)
         mins = mins[logd <= cut]
         thr = min(thr, float(np.exp(cut)))
@@ -438,6 +450,8 @@ def _loop_r(stack: np.ndarray) -> tuple[float, np.ndarray]:
     if bad.any():
         inl = s[~bad] - s[~bad].mean(axis=(0, 1), keepdims=True)
         var_i = float(np.mean(np.sum(inl * inl, axis=2)))
+        if not var_i > 0:
+            return 0.0, err
         err_i = np.mean(np.sum((inl - inl.mean(axis=0)) ** 2, axis=2), axis=1) / var_i
         return float(1.0 - err_i.mean()), err
     return float(1.0 - err.mean()), err
@@ -503,6 +517,8 @@ def _evaluate(h: np.ndarray, g: np.ndarray, dseed: np.ndarray, thrs: list[float]
     agree = np.abs(periods - med) <= m_t
     agreement = float(np.mean(agree)) * len(chains) / len(seeds)
     good = [c for c, a in zip(chains, agree, strict=True) if a]
+    if not good:
+        return None
     # The seed whose cuts make the most consistent loops, among those cutting (nearly) the most loops.
     cut = [(c, _loops_of(c, med)) for c in good]
     most = max(len(lp) for _, lp in cut)
@@ -614,7 +630,29 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
     if len(names) != v.shape[1]:
         raise ValueError(f"{len(names)} channel names for {v.shape[1]} columns")
     work = _prepare(t, v, quaternions, angles, angle_unit, opts.gap_factor)
-    x = work.x
+    try:
+        return _extract(work, names, opts, seed)
+    except NoPeriodFoundError as exc:
+        if work.notes:   # say what was done to the input (a gap that cut it short, dropped samples)
+            raise NoPeriodFoundError(f"{exc} (note: {'; '.join(work.notes)})") from None
+        raise
+
+
+def _extract(work: _Work, names: tuple[str, ...], opts: ExtractOptions, seed: int) -> Cycle:
+    x_full = work.x
+    # Matching works at up to ~250 samples/s: the descriptor's fixed radius (k samples) must span a
+    # visible part of the motion, not sensor noise. Faster inputs are low-passed and decimated for
+    # the matching (zero phase, so working sample i is input sample i * factor); the loop itself is
+    # averaged from the full-rate data.
+    factor = 1
+    if 1.0 / work.dt > opts.max_rate_hz and x_full.shape[0] // 2 >= 64:
+        factor = max(2, math.ceil(1.0 / (work.dt * opts.work_rate_hz)))
+        if x_full.shape[0] // factor < 64:
+            factor = max(2, x_full.shape[0] // 64)
+        x = signal.decimate(x_full, factor, ftype="fir", axis=0, zero_phase=True)
+        work = replace(work, dt=work.dt * factor)
+    else:
+        x = x_full
     n = x.shape[0]
     rng = np.random.default_rng(seed)
 
@@ -677,8 +715,9 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
         if is_valid(c) and c.plain >= _needed_r(opts, len(c.loops)):
             break
     if not evaluated:
-        raise NoPeriodFoundError("no period: the motion does not repeat over at least two loops"
-                                 + (f" (tried {len(cands)} candidate(s))" if cands else ""))
+        raise NoPeriodFoundError("no period: the motion does not repeat (a cycle needs about two and a half"
+                                 " loops or more of one repeated motion"
+                                 + (f"; tried {len(cands)} candidate period(s))" if cands else ")"))
     valid = [c for c in evaluated if is_valid(c)]
     if not valid:
         best = max(evaluated, key=lambda c: c.score)
@@ -702,7 +741,8 @@ def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]]
           or c.plain >= _needed_r(opts, len(c.loops))]
     cand = min(ok, key=lambda c: c.period)
 
-    return _finish(work, x, z, h, g, cand, seeds, [mm for mm, _ in matched], opts, names, margin, total_var, t_min, t_max, sd, active)
+    return _finish(work, x_full, factor, z, h, g, cand, seeds, [mm for mm, _ in matched], opts, names, margin,
+                   total_var, t_min, t_max, sd, active)
 
 
 @dataclass
@@ -817,7 +857,7 @@ def _refine_cuts(z: np.ndarray, cuts: np.ndarray, mean0: np.ndarray, per: float)
     return out
 
 
-def _finish(work: _Work, x: np.ndarray, z: np.ndarray, h: np.ndarray, g: np.ndarray, cand: _Candidate,
+def _finish(work: _Work, x: np.ndarray, factor: int, z: np.ndarray, h: np.ndarray, g: np.ndarray, cand: _Candidate,
             seeds: np.ndarray, matches: list[np.ndarray], opts: ExtractOptions, names: tuple[str, ...],
             margin: int, total_var: float, t_min: int, t_max: int, sd: np.ndarray, active: np.ndarray) -> Cycle:
     notes = list(work.notes)
@@ -845,9 +885,9 @@ def _finish(work: _Work, x: np.ndarray, z: np.ndarray, h: np.ndarray, g: np.ndar
     loops = al.loops
     # period: mean over the loops spanned, or median loop duration
     period_s = _period(work, z, cand, al, opts, total_var)
-    m = max(8, round(period_s / work.dt))
+    m = max(8, round(period_s / (work.dt / factor)))   # the output at the input's rate
     u = np.linspace(0.0, 1.0, m + 1)
-    positions = al.positions(u)
+    positions = al.positions(u) * factor
     # average (eq. 5.4); rotation vectors about the take's mean rotation average as an approximate
     # Karcher mean
     stack = _at_positions(x, positions.reshape(-1)).reshape(len(loops), m + 1, -1)
@@ -897,8 +937,11 @@ def _period(work: _Work, z: np.ndarray, cand: _Candidate, al: _Alignment, opts: 
     """The refined period in seconds (see the module docstring, step 7)."""
     loops = al.loops
     durations = np.array([b - a for a, b in loops])
+    # The span estimate (the mean loop) is the most accurate when the loops run on without a break;
+    # a long take with loops left out (a turn, a stumble) or missed gets the robust estimate.
+    broken = len(loops) < len(cand.loops) or bool(np.any(np.diff(cand.best.ks) != 1))
     use_median = opts.period_estimate == "median" or (
-        opts.period_estimate == "auto" and len(loops) >= opts.median_from_loops)
+        opts.period_estimate == "auto" and len(loops) >= opts.median_from_loops and broken)
     if use_median:
         # The typical duration of the loops that make the cycle (turns and stumbles left out). Each loop's
         # duration is averaged over the seeds that cut it, each at its own instant, which evens out the

@@ -266,5 +266,29 @@ def test_demo_extracts_the_wrists_cycle(tmp_path):
         assert next(csv.reader(f)) == ["t", "ax", "ay", "az", "gx", "gy", "gz"]
     assert str(tmp_path / "wrist_cycle.png") in p.stdout
     # the streaming follower on the live bus had a cycle during the take
+    # (during the 4 s take it usually has one after about 3 s; on a loaded machine it may not, and
+    # then says why, which is fine too)
     live = next(ln for ln in p.stdout.splitlines() if "live: following wrist/imu" in ln)
-    assert "the first cycle came" in live, live
+    assert "the first cycle came" in live or "no cycle during the take (" in live, live
+
+
+@pytest.mark.parametrize("style", ["bom_no_header", "semicolons", "tabs", "trailing_comma", "sensor_logger"])
+def test_csv_dialects(take, tmp_path, capsys, style):
+    rows = [[float(t), *map(float, v)] for t, v in zip(take.t, take.values)]
+    path = tmp_path / f"{style}.csv"
+    if style == "bom_no_header":
+        text = "\ufeff" + "\n".join(",".join(map(repr, r)) for r in rows) + "\n"
+    elif style in ("semicolons", "tabs"):
+        sep = ";" if style == "semicolons" else "\t"
+        text = sep.join(["t", "a", "b", "c"]) + "\n" + "\n".join(sep.join(map(repr, r)) for r in rows) + "\n"
+    elif style == "trailing_comma":
+        text = "t,a,b,c,\n" + "\n".join(",".join(map(repr, r)) + "," for r in rows) + "\n"
+    else:   # Sensor Logger: epoch nanoseconds, then seconds since the start, then z, y, x
+        text = "time,seconds_elapsed,z,y,x\n" + "\n".join(
+            f"{int(1.7e18 + r[0] * 1e9)},{r[0]!r},{r[3]!r},{r[2]!r},{r[1]!r}" for r in rows) + "\n"
+    path.write_text(text, encoding="utf-8")
+    code, out, err = run(capsys, "cycle", str(path), "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    assert abs(s["period_s"] / take.period_s - 1) < 0.02
+    assert len(s["channels"]) == 3 and not any("time" in c or "seconds" in c for c in s["channels"])
