@@ -37,6 +37,9 @@ __all__ = [
 _RIGID_TOL = 1e-6
 
 
+_EYE3 = np.eye(3)
+
+
 def _as_transform(x: object, name: str) -> np.ndarray:
     """Check that ``x`` is a 4x4 rigid transform and return it as a float array.
 
@@ -52,7 +55,7 @@ def _as_transform(x: object, name: str) -> np.ndarray:
     if np.max(np.abs(m[3] - (0.0, 0.0, 0.0, 1.0))) > _RIGID_TOL:
         raise ValueError(f"{name} must have the bottom row (0, 0, 0, 1), got {m[3]}")
     r = m[:3, :3]
-    if np.max(np.abs(r.T @ r - np.eye(3))) > 1e-5 or np.linalg.det(r) < 0:
+    if np.max(np.abs(r.T @ r - _EYE3)) > 1e-5 or float(np.dot(np.cross(r[:, 0], r[:, 1]), r[:, 2])) < 0:
         raise ValueError(f"{name} rotation block is not a proper rotation")
     return m
 
@@ -94,10 +97,18 @@ def pose_matrix(position: object, quaternion: object) -> np.ndarray:
         ValueError: wrong shapes, or a zero or non-finite quaternion.
     """
     q = np.asarray(quaternion, dtype=float)
-    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
+    t = np.asarray(position, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or math.sqrt(float(q @ q)) < 1e-12:
         raise ValueError(f"quaternion must be a finite non-zero (w, x, y, z), got {quaternion!r}")
-    rot = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix()
-    return make_transform(rot, position)
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise ValueError(f"position must be a finite 3-vector, got {position!r}")
+    w, x, y, z = q / math.sqrt(float(q @ q))
+    # the rotation matrix of a unit quaternion: proper by construction, so no check is needed
+    m = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), t[0]],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), t[1]],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), t[2]],
+                  [0.0, 0.0, 0.0, 1.0]])
+    return m
 
 
 def invert_transform(x: object) -> np.ndarray:

@@ -1,0 +1,1209 @@
+"""Verbs and adverbs (Rose 1999, ch. 4): scattered-data interpolation over adverb space and the
+``Verb`` that blends example motions with it.
+
+This module owns the radial basis interpolant of eq 4.2-4.5 (``RBF``: an SVD least-squares linear part,
+then cubic B-spline radial functions B(|p - p_i| / alpha_i) with alpha_i the distance to the nearest other
+example, solved directly with D[row = example i2, col = basis i1], the spec's index fix), the
+multiresolution interpolant of eq 4.8-4.10 (``MultiResolutionRBF``) with its clusterings
+(``basic_clustering``, Alg 4.1 with the "unless that empties its current cluster" fix;
+``improved_clustering``, Alg 4.2 starting at D + 1 clusters; seeded RNG), the storage formulas of the
+efficiency section, and ``Verb``.
+
+A ``Verb`` holds examples (a motion with its key-times at an adverb point p_i). Each is reoriented to start
+at X = Z = 0 with heading 0 (Alg 3.1), resampled on canonical time and fitted with the same uniform cubic
+B-spline layout per channel. Channels are per-joint rotation vectors relative to a per-joint reference
+rotation (hemisphere-consistent), the root translation minus its per-motion displacement trend, and the
+heading minus its net-turn trend; the displacement, the net turn and the key-times are interpolated too.
+At any p the blended key-times (guarded: strictly increasing) restore the timing, and the blended channels
+are mapped back to unit quaternions. Evaluation is vectorised: a new p costs its basis row and a small
+product for the key-times and root trend; a pose then blends only the four active control points per
+channel (``Verb.pose``, the per-frame path for playback at a phase advancing by dt / ``Verb.duration(p)``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import linalg
+
+from retarget.timeline import (
+    check_key_times,
+    qconj,
+    qexp,
+    qlog,
+    qmul,
+    qnormalize,
+    qslerp,
+    reorient,
+    split_heading,
+    verb_time,
+)
+
+__all__ = [
+    "RBF",
+    "Clustering",
+    "CurveLayout",
+    "Example",
+    "MultiResolutionRBF",
+    "Verb",
+    "VerbFrame",
+    "basic_clustering",
+    "bspline_kernel",
+    "coefficients_per_frame",
+    "example_storage",
+    "improved_clustering",
+    "mrbf_storage",
+]
+
+Array = np.ndarray
+
+
+# --------------------------------------------------------------------------------------------------
+# Radial basis interpolation
+
+
+def bspline_kernel(x: Array | float) -> Array | float:
+    """The cubic B-spline radial function, support radius 2.
+
+    B(x) = (4 - 6x^2 + 3|x|^3) / 6 for |x| < 1, (2 - |x|)^3 / 6 for |x| < 2, 0 otherwise; B(0) = 2/3 and
+    B(1) = 1/6.
+
+    Args:
+        x: scaled distance(s).
+
+    Returns:
+        B(x) with the shape of ``x``.
+    """
+    a = np.abs(np.asarray(x, dtype=float))
+    out = (np.maximum(2.0 - a, 0.0) ** 3 - 4.0 * np.maximum(1.0 - a, 0.0) ** 3) / 6.0
+    return float(out) if np.ndim(x) == 0 else out
+
+
+def _as_points(points: Array | Sequence[float]) -> Array:
+    p = np.asarray(points, dtype=float)
+    if p.ndim == 1:
+        p = p[:, None]
+    if p.ndim != 2 or p.shape[0] == 0 or not np.all(np.isfinite(p)):
+        raise ValueError(f"points must be (n, D) finite, got shape {p.shape}")
+    return p
+
+
+def _as_query(p: Array | Sequence[float] | float, dim: int) -> tuple[Array, bool]:
+    """Queries as (Q, D) and whether a single point was given."""
+    a = np.asarray(p, dtype=float)
+    if a.ndim == 0:
+        if dim != 1:
+            raise ValueError(f"a scalar adverb needs a 1-D adverb space, this one is {dim}-D")
+        return a.reshape(1, 1), True
+    if a.ndim == 1:
+        if dim == 1 and a.size != 1:
+            return a[:, None], False
+        if a.size != dim:
+            raise ValueError(f"adverb point must have {dim} entries, got {a.size}")
+        return a[None, :], True
+    if a.ndim == 2 and a.shape[1] == dim:
+        return a, False
+    raise ValueError(f"adverb points must be (Q, {dim}), got {a.shape}")
+
+
+def _nearest_other(points: Array) -> Array:
+    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    alpha = d.min(axis=1)
+    if np.any(alpha <= 0.0):
+        raise ValueError("two interpolation points coincide; examples must be well separated")
+    return alpha
+
+
+def _kernel_matrix(points: Array, alpha: Array) -> Array:
+    """D[i2, i1] = B(|p_i2 - p_i1| / alpha_i1): row = example, column = basis function."""
+    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1)
+    return np.asarray(bspline_kernel(d / alpha[None, :]))
+
+
+class _Interpolant:
+    """f(p) = basis(p) @ coefficients, with basis = [1, p_1..p_D, radial terms...]."""
+
+    dim: int
+    coefficients: Array
+    _scalar: bool
+
+    def basis(self, p: Array | Sequence[float] | float) -> Array:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __call__(self, p: Array | Sequence[float] | float) -> Array | float:
+        """Evaluate at one point (returns (M,) or a float for scalar data) or at (Q, D) points.
+
+        Args:
+            p: adverb point(s).
+
+        Returns:
+            Interpolated values.
+
+        Raises:
+            ValueError: wrong dimension.
+        """
+        q, single = _as_query(p, self.dim)
+        out = self._basis_q(q) @ self.coefficients
+        if self._scalar:
+            out = out[:, 0]
+            return float(out[0]) if single else out
+        return out[0] if single else out
+
+    def _basis_q(self, q: Array) -> Array:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def _linear_fit(points: Array, values: Array) -> Array:
+    """Least squares [1, p] a = v by SVD (gelsd)."""
+    a_mat = np.hstack([np.ones((points.shape[0], 1)), points])
+    coef, *_ = linalg.lstsq(a_mat, values, lapack_driver="gelsd")
+    return np.asarray(coef)
+
+
+class RBF(_Interpolant):
+    """Radial basis interpolant over adverb space (eq 4.2-4.5).
+
+    b(p) = sum_i r_i B(|p - p_i| / alpha_i) + a_0 + sum_l a_l p_l. The linear part is the least-squares
+    hyperplane (SVD); the radial part interpolates its residuals exactly, with alpha_i the distance from
+    p_i to its nearest other example and the system D r = residuals solved directly.
+
+    Args:
+        points: (n, D) example locations (or (n,) for D = 1).
+        values: (n,) or (n, M) example values; each column is an independent problem.
+
+    Attributes:
+        dim: D.
+        points: (n, D).
+        linear: (D + 1, M) a_0, a_1..a_D.
+        residuals: (n, M) values minus the linear part at the examples.
+        alphas: (n,) radial scales.
+        kernel_matrix: (n, n) D[i2, i1].
+        radial: (n, M) r.
+        coefficients: (D + 1 + n, M) stacked [linear; radial].
+
+    Raises:
+        ValueError: mismatched shapes, fewer than D + 1 examples, or coincident points.
+    """
+
+    def __init__(self, points: Array | Sequence[float], values: Array | Sequence[float]) -> None:
+        pts = _as_points(points)
+        v = np.asarray(values, dtype=float)
+        self._scalar = v.ndim == 1
+        v = v.reshape(v.shape[0], -1) if v.ndim >= 1 else v
+        if v.shape[0] != pts.shape[0]:
+            raise ValueError(f"{pts.shape[0]} points but {v.shape[0]} values")
+        n, d = pts.shape
+        if n < d + 1:
+            raise ValueError(f"need at least D + 1 = {d + 1} examples, got {n}")
+        self.dim = d
+        self.points = pts
+        self.linear = _linear_fit(pts, v)
+        self.residuals = v - np.hstack([np.ones((n, 1)), pts]) @ self.linear
+        self.alphas = _nearest_other(pts)
+        self.kernel_matrix = _kernel_matrix(pts, self.alphas)
+        self.radial = np.asarray(linalg.solve(self.kernel_matrix, self.residuals))
+        self.coefficients = np.vstack([self.linear, self.radial])
+
+    def _basis_q(self, q: Array) -> Array:
+        dist = np.linalg.norm(q[:, None, :] - self.points[None, :, :], axis=-1)
+        return np.hstack([np.ones((q.shape[0], 1)), q, bspline_kernel(dist / self.alphas)])
+
+    def basis_one(self, p: Array) -> Array:
+        """``basis`` for one validated (D,) point, without the argument checks (the fast path)."""
+        x = np.sqrt(((self.points - p) ** 2).sum(axis=1)) / self.alphas
+        return np.concatenate(([1.0], p, (np.maximum(2.0 - x, 0.0) ** 3 - 4.0 * np.maximum(1.0 - x, 0.0) ** 3) / 6.0))
+
+    def basis(self, p: Array | Sequence[float] | float) -> Array:
+        """Basis row(s) [1, p, B(|p - p_i| / alpha_i)]: f(p) = basis(p) @ coefficients.
+
+        Args:
+            p: adverb point(s).
+
+        Returns:
+            (D + 1 + n,) or (Q, D + 1 + n).
+
+        Raises:
+            ValueError: wrong dimension.
+        """
+        q, single = _as_query(p, self.dim)
+        b = self._basis_q(q)
+        return b[0] if single else b
+
+
+# --------------------------------------------------------------------------------------------------
+# Clustering and the multiresolution interpolant
+
+
+@dataclass(frozen=True)
+class Clustering:
+    """A partition of points into non-empty clusters.
+
+    Attributes:
+        labels: (n,) cluster index of each point.
+        centres: (k, D) mean of each cluster's members.
+        cost: sum over clusters of the distance from the centre to the farthest member.
+    """
+
+    labels: Array
+    centres: Array
+    cost: float
+
+    @property
+    def count(self) -> int:
+        """Number of clusters."""
+        return int(self.centres.shape[0])
+
+    def members(self) -> list[list[int]]:
+        """Indices of the members of each cluster."""
+        return [np.flatnonzero(self.labels == k).tolist() for k in range(self.count)]
+
+
+def _finish(points: Array, labels: Array, k: int) -> Clustering:
+    centres = np.stack([points[labels == c].mean(axis=0) for c in range(k)])
+    radii = np.linalg.norm(points - centres[labels], axis=1)
+    cost = float(sum(radii[labels == c].max() for c in range(k)))
+    return Clustering(labels=labels.copy(), centres=centres, cost=cost)
+
+
+def basic_clustering(
+    points: Array | Sequence[float],
+    n: int,
+    *,
+    rng: np.random.Generator,
+    restarts: int = 32,
+    max_iter: int = 100,
+) -> Clustering:
+    """BasicClustering (Alg 4.1): ``n`` non-empty clusters of least cost over random restarts.
+
+    Each restart places n random centres in the convex hull (random convex combinations of the points),
+    assigns each point to its nearest centre, fills every empty cluster with a random point stolen from
+    a cluster of at least two, then repeats until stable: centres to their members' means, and each point
+    to a closer centre unless that would empty its current cluster. The lowest cost wins.
+
+    Args:
+        points: (m, D) or (m,).
+        n: number of clusters, 1 <= n <= m.
+        rng: the random generator (seed it for reproducible clusterings).
+        restarts: number of random restarts (>= 1).
+        max_iter: cap on the refinement sweeps of one restart.
+
+    Returns:
+        The best ``Clustering``.
+
+    Raises:
+        ValueError: n out of range or restarts < 1.
+    """
+    pts = _as_points(points)
+    m = pts.shape[0]
+    if not 1 <= n <= m:
+        raise ValueError(f"need 1 <= n <= {m} clusters, got {n}")
+    if restarts < 1:
+        raise ValueError("restarts must be >= 1")
+    best = Clustering(labels=np.zeros(m, dtype=int), centres=pts.mean(axis=0, keepdims=True), cost=math.inf)
+    for _ in range(restarts):
+        centres = rng.dirichlet(np.ones(m), size=n) @ pts
+        labels = np.argmin(np.linalg.norm(pts[:, None, :] - centres[None], axis=-1), axis=1)
+        counts = np.bincount(labels, minlength=n)
+        for k in np.flatnonzero(counts == 0):
+            donors = np.flatnonzero(counts[labels] >= 2)
+            i = int(rng.choice(donors))
+            counts[labels[i]] -= 1
+            labels[i] = k
+            counts[k] += 1
+        for _sweep in range(max_iter):
+            centres = np.stack([pts[labels == c].mean(axis=0) for c in range(n)])
+            changed = False
+            for i in range(m):
+                d = np.linalg.norm(centres - pts[i], axis=1)
+                j = int(np.argmin(d))
+                cur = int(labels[i])
+                if j != cur and d[j] < d[cur] and counts[cur] > 1:
+                    labels[i] = j
+                    counts[cur] -= 1
+                    counts[j] += 1
+                    changed = True
+            if not changed:
+                break
+        result = _finish(pts, labels, n)
+        if result.cost < best.cost - 1e-12:
+            best = result
+    return best
+
+
+def improved_clustering(
+    points: Array | Sequence[float],
+    *,
+    max_cost: float,
+    max_clusters: int,
+    rng: np.random.Generator,
+    restarts: int = 32,
+) -> Clustering:
+    """ImprovedClustering (Alg 4.2): start at D + 1 clusters (the spec's fix) and add clusters while the
+    cost exceeds ``max_cost`` and the count is below ``max_clusters``.
+
+    Args:
+        points: (m, D).
+        max_cost: acceptable clustering cost.
+        max_clusters: upper bound on the count (at least D + 1, at most m).
+        rng: the random generator.
+        restarts: restarts per ``basic_clustering`` call.
+
+    Returns:
+        The clustering reached.
+
+    Raises:
+        ValueError: fewer than D + 1 points, or a bad max_clusters.
+    """
+    pts = _as_points(points)
+    m, d = pts.shape
+    if m < d + 1:
+        raise ValueError(f"need at least D + 1 = {d + 1} points, got {m}")
+    if not d + 1 <= max_clusters <= m:
+        raise ValueError(f"max_clusters must be in [{d + 1}, {m}], got {max_clusters}")
+    n = d + 1
+    clustering = basic_clustering(pts, n, rng=rng, restarts=restarts)
+    while clustering.cost > max_cost and n < max_clusters:
+        n += 1
+        clustering = basic_clustering(pts, n, rng=rng, restarts=restarts)
+    return clustering
+
+
+class MultiResolutionRBF(_Interpolant):
+    """Multiresolution radial basis interpolant (eq 4.8-4.10).
+
+    Level 0 is the coarse clustering of ``improved_clustering``; each further level roughly doubles the
+    cluster count, and the finest level is every example on its own. A cluster stands for the mean of its
+    members' positions and values. The linear part is fitted on the level-0 clusters; then, coarse to fine,
+    each level's radial coefficients interpolate what the linear part and all coarser levels leave at that
+    level's cluster centres (radius: distance to the nearest other centre of the level). The result
+    interpolates every example and is not thrown by near-duplicate examples.
+
+    Args:
+        points: (n, D) or (n,).
+        values: (n,) or (n, M).
+        max_cost: coarse clustering cost target; None = 0.1 x the diagonal of the points' bounding box.
+        max_clusters: cap for the coarse level; None = n - 1 (at least D + 1).
+        seed: seed of the clustering RNG.
+        restarts: clustering restarts.
+
+    Attributes:
+        levels: the ``Clustering`` of each level, coarse to fine.
+        level_points: (k_c, D) centres per level.
+        level_alphas: radial scales per level.
+        level_radial: (k_c, M) coefficients per level.
+        linear: (D + 1, M).
+        coefficients: (D + 1 + sum k_c, M).
+
+    Raises:
+        ValueError: fewer than D + 1 examples, or coincident examples.
+    """
+
+    def __init__(
+        self,
+        points: Array | Sequence[float],
+        values: Array | Sequence[float],
+        *,
+        max_cost: float | None = None,
+        max_clusters: int | None = None,
+        seed: int = 0,
+        restarts: int = 32,
+    ) -> None:
+        pts = _as_points(points)
+        v = np.asarray(values, dtype=float)
+        self._scalar = v.ndim == 1
+        v = v.reshape(v.shape[0], -1)
+        n, d = pts.shape
+        if v.shape[0] != n:
+            raise ValueError(f"{n} points but {v.shape[0]} values")
+        if n < d + 1:
+            raise ValueError(f"need at least D + 1 = {d + 1} examples, got {n}")
+        _nearest_other(pts)  # rejects coincident examples
+        self.dim = d
+        self.points = pts
+        rng = np.random.default_rng(seed)
+        extent = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+        cost = 0.1 * extent if max_cost is None else float(max_cost)
+        cap = max(d + 1, n - 1) if max_clusters is None else int(max_clusters)
+        cap = min(cap, n)
+        levels = [improved_clustering(pts, max_cost=cost, max_clusters=cap, rng=rng, restarts=restarts)]
+        while levels[-1].count < n:
+            k = min(2 * levels[-1].count, n)
+            if k == n:
+                levels.append(Clustering(labels=np.arange(n), centres=pts.copy(), cost=0.0))
+            else:
+                levels.append(basic_clustering(pts, k, rng=rng, restarts=restarts))
+        self.levels = levels
+        means = [np.stack([v[c.labels == j].mean(axis=0) for j in range(c.count)]) for c in levels]
+        self.linear = _linear_fit(levels[0].centres, means[0])
+        self.level_points: list[Array] = []
+        self.level_alphas: list[Array] = []
+        self.level_radial: list[Array] = []
+        for c, target in zip(levels, means, strict=True):
+            centres = c.centres
+            so_far = self._evaluate_partial(centres)
+            alpha = _nearest_other(centres)
+            r = np.asarray(linalg.solve(_kernel_matrix(centres, alpha), target - so_far))
+            self.level_points.append(centres)
+            self.level_alphas.append(alpha)
+            self.level_radial.append(r)
+        self.coefficients = np.vstack([self.linear, *self.level_radial])
+
+    def _evaluate_partial(self, q: Array) -> Array:
+        out = np.hstack([np.ones((q.shape[0], 1)), q]) @ self.linear
+        for pts, alpha, r in zip(self.level_points, self.level_alphas, self.level_radial, strict=True):
+            dist = np.linalg.norm(q[:, None, :] - pts[None, :, :], axis=-1)
+            out = out + np.asarray(bspline_kernel(dist / alpha)) @ r
+        return out
+
+    def basis_one(self, p: Array) -> Array:
+        """``basis`` for one validated (D,) point, without the argument checks (the fast path)."""
+        return self._basis_q(p[None, :])[0]
+
+    def _basis_q(self, q: Array) -> Array:
+        parts = [np.ones((q.shape[0], 1)), q]
+        for pts, alpha in zip(self.level_points, self.level_alphas, strict=True):
+            dist = np.linalg.norm(q[:, None, :] - pts[None, :, :], axis=-1)
+            parts.append(np.asarray(bspline_kernel(dist / alpha)))
+        return np.hstack(parts)
+
+    def basis(self, p: Array | Sequence[float] | float) -> Array:
+        """Basis row(s): f(p) = basis(p) @ coefficients.
+
+        Args:
+            p: adverb point(s).
+
+        Returns:
+            (K,) or (Q, K).
+
+        Raises:
+            ValueError: wrong dimension.
+        """
+        q, single = _as_query(p, self.dim)
+        b = self._basis_q(q)
+        return b[0] if single else b
+
+
+# --------------------------------------------------------------------------------------------------
+# Storage and cost formulas of the efficiency section (L1869-1897)
+
+
+def coefficients_per_frame(num_dofs: int, num_key_times: int) -> int:
+    """Coefficients blended per frame: 4 active cubic control points per DOF plus the key-times.
+
+    Args:
+        num_dofs: NumDOF.
+        num_key_times: NumKeyTimes.
+
+    Returns:
+        4 NumDOF + NumKeyTimes (walk: 4 x 44 + 4 = 180).
+    """
+    return 4 * num_dofs + num_key_times
+
+
+def example_storage(num_dofs: int, num_cp: int, num_examples: int) -> int:
+    """Coefficients stored by the raw examples: NumDOF x NumCP x n (walk: 44 x 32 x 20 = 28 160).
+
+    Args:
+        num_dofs: NumDOF.
+        num_cp: control points per DOF.
+        num_examples: n.
+
+    Returns:
+        The count.
+    """
+    return num_dofs * num_cp * num_examples
+
+
+def mrbf_storage(num_dofs: int, num_cp: int, num_key_times: int, num_examples: int, num_adverbs: int) -> int:
+    """Coefficients stored by a multiresolution verb with halving levels.
+
+    (NumKeyTimes + NumCP NumDOF) spaces, each with (D + 1) linear and at most 2n radial coefficients
+    (walk: 1412 x 45 = 63 540, 2.26x the examples).
+
+    Args:
+        num_dofs: NumDOF.
+        num_cp: control points per DOF.
+        num_key_times: NumKeyTimes.
+        num_examples: n.
+        num_adverbs: D.
+
+    Returns:
+        The count.
+    """
+    return (num_key_times + num_cp * num_dofs) * ((num_adverbs + 1) + 2 * num_examples)
+
+
+# --------------------------------------------------------------------------------------------------
+# Curve layout in canonical time
+
+
+_B = np.array(
+    [
+        [-1.0, 3.0, -3.0, 1.0],
+        [3.0, -6.0, 0.0, 4.0],
+        [-3.0, 3.0, 3.0, 1.0],
+        [1.0, 0.0, 0.0, 0.0],
+    ]
+) / 6.0  # row i: coefficients of f^3, f^2, f, 1 of the i-th uniform cubic B-spline piece
+
+
+class CurveLayout:
+    """A uniform cubic B-spline in canonical time with ``num_cp`` control points per channel.
+
+    Non-periodic: t in [0, 1] spans num_cp - 3 segments (t clamped). Periodic: t wraps modulo 1 over
+    num_cp segments, so the curve is C2 across the seam.
+
+    Args:
+        num_cp: control points per channel (>= 4).
+        periodic: wrap canonical time.
+
+    Raises:
+        ValueError: num_cp < 4.
+    """
+
+    def __init__(self, num_cp: int, periodic: bool) -> None:
+        if num_cp < 4:
+            raise ValueError(f"need at least 4 control points, got {num_cp}")
+        self.num_cp = int(num_cp)
+        self.periodic = bool(periodic)
+        self.segments = self.num_cp if periodic else self.num_cp - 3
+
+    def span(self, t: Array) -> tuple[Array, Array, Array]:
+        """Active control points, weights and d(weights)/dt at canonical times.
+
+        Args:
+            t: (...,) canonical times.
+
+        Returns:
+            (idx (..., 4) int, w (..., 4), dw (..., 4)).
+        """
+        ta = np.asarray(t, dtype=float)
+        ta = np.mod(ta, 1.0) if self.periodic else np.clip(ta, 0.0, 1.0)
+        u = ta * self.segments
+        i = np.minimum(np.floor(u), self.segments - 1)
+        f = (u - i)[..., None]
+        i = i.astype(int)
+        idx = i[..., None] + np.arange(4)
+        if self.periodic:
+            idx %= self.num_cp
+        powers = np.concatenate([f**3, f**2, f, np.ones_like(f)], axis=-1)
+        dpowers = np.concatenate([3.0 * f**2, 2.0 * f, np.ones_like(f), np.zeros_like(f)], axis=-1)
+        return idx, powers @ _B.T, (dpowers @ _B.T) * self.segments
+
+    def design(self, t: Array) -> Array:
+        """Design matrix: row s holds the weight of each control point at t_s.
+
+        Args:
+            t: (S,) canonical times.
+
+        Returns:
+            (S, num_cp).
+        """
+        idx, w, _ = self.span(np.asarray(t, dtype=float))
+        out = np.zeros((idx.shape[0], self.num_cp))
+        np.add.at(out, (np.arange(idx.shape[0])[:, None], idx), w)
+        return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Examples and verbs
+
+
+def _resample(times: Array, root_pos: Array, rotations: Array, T: Array) -> tuple[Array, Array]:
+    """Linear root and slerped rotations at times T (clamped)."""
+    Tc = np.clip(T, times[0], times[-1])
+    i = np.clip(np.searchsorted(times, Tc, side="right") - 1, 0, times.size - 2)
+    f = (Tc - times[i]) / (times[i + 1] - times[i])
+    pos = (1.0 - f)[:, None] * root_pos[i] + f[:, None] * root_pos[i + 1]
+    rot = qslerp(rotations[i], rotations[i + 1], np.repeat(f[:, None], rotations.shape[1], axis=1))
+    return pos, rot
+
+
+@dataclass(frozen=True)
+class Example:
+    """One example motion of a verb.
+
+    Attributes:
+        point: (D,) its location in adverb space.
+        times: (F,) increasing sample times in seconds, from 0.
+        root_pos: (F, 3) root position (m).
+        rotations: (F, J, 4) local joint rotations, (w, x, y, z); joint 0 is the root (world).
+        key_times: (N,) key-times, 0 .. duration (the last sample time or earlier).
+        name: label for messages.
+    """
+
+    point: Array
+    times: Array
+    root_pos: Array
+    rotations: Array
+    key_times: Array
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        """Validate shapes.
+
+        Raises:
+            ValueError: inconsistent shapes, times, or key-times.
+        """
+        object.__setattr__(self, "point", np.atleast_1d(np.asarray(self.point, dtype=float)))
+        tm = np.asarray(self.times, dtype=float)
+        pos = np.asarray(self.root_pos, dtype=float)
+        rot = np.asarray(self.rotations, dtype=float)
+        k = check_key_times(self.key_times)
+        if tm.ndim != 1 or tm.size < 2 or tm[0] != 0.0 or np.any(np.diff(tm) <= 0.0):
+            raise ValueError(f"example {self.name!r}: times must increase strictly from 0")
+        if pos.shape != (tm.size, 3) or rot.ndim != 3 or rot.shape[0] != tm.size or rot.shape[2] != 4:
+            raise ValueError(f"example {self.name!r}: root_pos (F, 3) and rotations (F, J, 4) needed")
+        if k[-1] > tm[-1] + 1e-9:
+            raise ValueError(f"example {self.name!r}: last key-time {k[-1]} is past the last sample {tm[-1]}")
+        object.__setattr__(self, "times", tm)
+        object.__setattr__(self, "root_pos", pos)
+        object.__setattr__(self, "rotations", qnormalize(rot))
+        object.__setattr__(self, "key_times", k)
+
+    @classmethod
+    def from_clip(cls, clip: Any, point: Sequence[float] | Array | float, *, samples: int | None = None) -> Example:
+        """An example from a ``retarget.skeleton.Clip`` (duck-typed: ``sample``, ``key_times``, ``duration``).
+
+        The clip is sampled through ``clip.sample(T)`` on a uniform grid over [0, duration].
+
+        Args:
+            clip: the clip.
+            point: its adverb point.
+            samples: grid size; None uses one sample per frame (at least 2).
+
+        Returns:
+            The example.
+
+        Raises:
+            ValueError: clip key-times invalid.
+        """
+        dur = float(clip.duration)
+        n = samples if samples is not None else max(2, round(dur * float(clip.fps)) + 1)
+        T = np.linspace(0.0, dur, n)
+        pos, rot = clip.sample(T)
+        pos = np.asarray(pos, dtype=float)
+        rot = np.asarray(rot, dtype=float)
+        if pos.shape != (n, 3):
+            per = [clip.sample(float(x)) for x in T]
+            pos = np.stack([np.asarray(a, dtype=float) for a, _ in per])
+            rot = np.stack([np.asarray(b, dtype=float) for _, b in per])
+        k = np.asarray(clip.key_times, dtype=float)
+        k[-1] = min(k[-1], dur)
+        return cls(point=np.atleast_1d(np.asarray(point, dtype=float)), times=T, root_pos=pos, rotations=rot,
+                   key_times=k, name=str(getattr(clip, "name", "")))
+
+
+@dataclass(frozen=True)
+class VerbFrame:
+    """A verb evaluated at some times (leading axes follow the query).
+
+    Attributes:
+        root_pos: (..., 3) root position in the verb's start frame (X = Z = 0, heading 0 at t = 0; Y is
+            the height).
+        heading: (...,) root heading in the start frame.
+        root_velocity: (..., 3) d root_pos / dT in the start frame, m/s of verb time.
+        heading_rate: (...,) d heading / dT.
+        rotations: (..., J, 4) local rotations; joint 0 is the root tilt (its rotation with the heading
+            removed): the root's world rotation is yaw_quat(heading) * rotations[..., 0, :].
+        t: (...,) canonical time.
+    """
+
+    root_pos: Array
+    heading: Array
+    root_velocity: Array
+    heading_rate: Array
+    rotations: Array
+    t: Array
+
+
+class _Blend:
+    """Adverb weights at one p and the small blended quantities; the full control points on demand."""
+
+    __slots__ = ("_coef_t", "_cp", "disp", "key_list", "key_times", "turn", "weights")
+
+    def __init__(self, weights: Array, small: Array, coef_t: Array) -> None:
+        self.weights = weights
+        self.disp = small[:3]
+        self.turn = float(small[3])
+        k = small[4:].copy()
+        k[0] = 0.0
+        self.key_times = k
+        self.key_list: list[float] = k.tolist()
+        self._coef_t = coef_t
+        self._cp: Array | None = None
+
+    @property
+    def cp(self) -> Array:
+        """(rows, C) blended control points (periodic layouts repeat the first 3 rows at the end)."""
+        if self._cp is None:
+            self._cp = self._coef_t @ self.weights
+        return self._cp
+
+
+class Verb:
+    """A parametrised motion blended from examples over adverb space.
+
+    Args:
+        examples: at least D + 1 examples with the same joint count and number of key-times.
+        num_cp: B-spline control points per channel in canonical time.
+        periodic: the motion is a cycle (canonical time wraps; curves are periodic).
+        interpolant: "rbf" (single level) or "mrbf" (multiresolution).
+        samples: canonical samples per example for the curve fit; None = max(8 num_cp, 64).
+        seed: seed of the MRBF clustering.
+        name: the verb's name.
+
+    Raises:
+        ValueError: too few examples, mixed dimensions or skeletons, different key-time counts,
+            coincident adverb points, or an unknown interpolant.
+    """
+
+    def __init__(
+        self,
+        examples: Sequence[Example],
+        *,
+        num_cp: int = 24,
+        periodic: bool = False,
+        interpolant: str = "rbf",
+        samples: int | None = None,
+        seed: int = 0,
+        name: str = "verb",
+    ) -> None:
+        if not examples:
+            raise ValueError("a verb needs examples")
+        dim = examples[0].point.size
+        if any(e.point.size != dim for e in examples):
+            raise ValueError("all examples need adverb points of the same dimension")
+        if len(examples) < dim + 1:
+            raise ValueError(f"a verb with {dim} adverbs needs at least {dim + 1} examples, got {len(examples)}")
+        nj = examples[0].rotations.shape[1]
+        nk = examples[0].key_times.size
+        if any(e.rotations.shape[1] != nj for e in examples):
+            raise ValueError("all examples need the same skeleton (joint count)")
+        if any(e.key_times.size != nk for e in examples):
+            raise ValueError("all examples need the same key-time sequence (count)")
+        if interpolant not in ("rbf", "mrbf"):
+            raise ValueError(f"interpolant must be 'rbf' or 'mrbf', got {interpolant!r}")
+        self.name = name
+        self.dim = int(dim)
+        self.num_joints = int(nj)
+        self.num_key_times = int(nk)
+        self.periodic = bool(periodic)
+        self.layout = CurveLayout(num_cp, periodic)
+        self.examples = tuple(examples)
+        self.points = np.stack([e.point for e in examples])
+        s = max(8 * num_cp, 64) if samples is None else int(samples)
+        ts = np.linspace(0.0, 1.0, s)
+
+        # resample every example on canonical time; reorient (Alg 3.1); split heading from the root
+        pos_all, head_all, rot_all = [], [], []
+        for e in examples:
+            pos, rot = _resample(e.times, e.root_pos, e.rotations, np.asarray(verb_time(ts, e.key_times)))
+            h, tilt = split_heading(rot[:, 0])
+            h = np.unwrap(h)
+            pos, h = reorient(pos, h)
+            rot = rot.copy()
+            rot[:, 0] = tilt
+            pos_all.append(pos)
+            head_all.append(h)
+            rot_all.append(rot)
+        rots = np.stack(rot_all)  # (n, S, J, 4)
+        self.reference = self._references(rots)
+        rel = qmul(qconj(self.reference)[None, None], rots)
+        rv = self._unwrap(qlog(rel)).reshape(len(examples), s, 3 * nj)
+        disp = np.stack([p[-1] - p[0] for p in pos_all])  # (n, 3); start X = Z = 0
+        disp[:, 1] = 0.0  # the height is absolute, only X and Z carry a trend
+        turn = np.array([h[-1] - h[0] for h in head_all])
+        res = np.stack([p - ts[:, None] * d for p, d in zip(pos_all, disp, strict=True)])
+        hres = np.stack([h - ts * w for h, w in zip(head_all, turn, strict=True)])[..., None]
+        channels = np.concatenate([rv, res, hres], axis=2)  # (n, S, C)
+        self.num_channels = channels.shape[2]
+        design = self.layout.design(ts)
+        stacked = channels.transpose(1, 0, 2).reshape(s, -1)
+        cps, *_ = linalg.lstsq(design, stacked, lapack_driver="gelsd")
+        cps = np.asarray(cps).reshape(num_cp, len(examples), self.num_channels).transpose(1, 0, 2)
+        self._fit_rms = float(np.sqrt(np.mean((np.einsum("sm,nmc->nsc", design, cps) - channels) ** 2)))
+        keys = np.stack([e.key_times for e in examples])
+        values = np.hstack([cps.reshape(len(examples), -1), disp, turn[:, None], keys])
+        self.interpolant: RBF | MultiResolutionRBF = (
+            RBF(self.points, values) if interpolant == "rbf" else MultiResolutionRBF(self.points, values, seed=seed)
+        )
+        coef = self.interpolant.coefficients  # (K, M C + 4 + N)
+        ncp = num_cp * self.num_channels
+        curves = coef[:, :ncp].reshape(-1, num_cp, self.num_channels)
+        if periodic:  # repeat the first rows so that any 4 consecutive control points are a slice
+            curves = np.concatenate([curves, curves[:, :3]], axis=1)
+        self._coef_t = np.ascontiguousarray(curves.transpose(1, 2, 0))  # (rows, C, K)
+        self._coef_small = np.ascontiguousarray(coef[:, ncp:].T)  # (4 + N, K)
+        self._ref_left = self._left_matrices(self.reference)  # q = ref * e as a (J, 4, 4) matrix times e
+        self._tgrid = np.linspace(0.0, 1.0, nk)  # canonical times of the key-times
+        self._cache_key: bytes | None = None
+        self._cache: _Blend | None = None
+
+    @staticmethod
+    def _left_matrices(q: Array) -> Array:
+        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        return np.stack(
+            [
+                np.stack([w, -x, -y, -z], axis=-1),
+                np.stack([x, w, -z, y], axis=-1),
+                np.stack([y, z, w, -x], axis=-1),
+                np.stack([z, -y, x, w], axis=-1),
+            ],
+            axis=1,
+        )
+
+    @staticmethod
+    def _unwrap(rv: Array) -> Array:
+        """Keep rotation-vector curves continuous in time where a joint passes pi from its reference.
+
+        The hemisphere-consistent rotation vector jumps there (axis flip); v - 2 pi v/|v| or v + 2 pi v/|v|
+        is the same rotation, and whichever is nearest the previous sample is kept. Joints that stay within
+        pi of the reference are untouched.
+
+        Args:
+            rv: (n, S, J, 3) rotation vectors.
+
+        Returns:
+            (n, S, J, 3).
+        """
+        ang = np.linalg.norm(rv, axis=-1)
+        if ang.max(initial=0.0) < 0.75 * np.pi:
+            return rv
+        out = rv.copy()
+        for s in range(1, rv.shape[1]):
+            prev = out[:, s - 1]
+            cur = rv[:, s]
+            a = np.linalg.norm(cur, axis=-1, keepdims=True)
+            unit = cur / np.where(a > 1e-12, a, 1.0)
+            best = cur
+            best_d = np.linalg.norm(cur - prev, axis=-1)
+            for k in (-2, -1, 1, 2):
+                alt = cur + (2.0 * np.pi * k) * unit
+                d = np.linalg.norm(alt - prev, axis=-1)
+                take = d < best_d - 1e-12
+                best = np.where(take[..., None], alt, best)
+                best_d = np.minimum(d, best_d)
+            out[:, s] = best
+        return out
+
+    @staticmethod
+    def _references(rots: Array) -> Array:
+        """Per-joint reference: hemisphere-aligned chordal mean of every sample of every example."""
+        flat = rots.reshape(-1, rots.shape[2], 4)  # (n S, J, 4)
+        first = flat[0]
+        sign = np.where(np.sum(flat * first[None], axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
+        mean = (flat * sign).sum(axis=0)
+        norm = np.linalg.norm(mean, axis=-1, keepdims=True)
+        return np.where(norm > 1e-9, mean / np.maximum(norm, 1e-300), first)
+
+    # -- blending -------------------------------------------------------------------------------
+
+    def _blend(self, p: Array | Sequence[float] | float) -> _Blend:
+        pa = np.asarray(p, dtype=float)
+        if pa.shape != (self.dim,):
+            pa = np.atleast_1d(pa)
+            if pa.shape != (self.dim,):
+                raise ValueError(f"verb {self.name!r} has {self.dim} adverbs, got p of shape {pa.shape}")
+        key = pa.tobytes()
+        if key == self._cache_key and self._cache is not None:
+            return self._cache
+        if not np.isfinite(pa).all():
+            raise ValueError("adverbs must be finite")
+        w = self.interpolant.basis_one(pa)
+        blend = _Blend(w, self._coef_small @ w, self._coef_t)
+        k = blend.key_list
+        if any(b <= a for a, b in itertools.pairwise(k)):
+            raise ValueError(
+                f"verb {self.name!r}: interpolated key-times {k} at p = {pa.tolist()} are not strictly "
+                "increasing (p is too far outside the examples)"
+            )
+        self._cache_key, self._cache = key, blend
+        return blend
+
+    def key_times(self, p: Array | Sequence[float] | float) -> Array:
+        """Interpolated key-times at p (the guard: strictly increasing).
+
+        Args:
+            p: adverbs (D,).
+
+        Returns:
+            (N,) key-times, first 0.
+
+        Raises:
+            ValueError: wrong p, or key-times not strictly increasing at p.
+        """
+        return self._blend(p).key_times.copy()
+
+    def duration(self, p: Array | Sequence[float] | float) -> float:
+        """Interpolated duration T^d(p) (the last key-time; a cycle's period for periodic verbs).
+
+        Args:
+            p: adverbs.
+
+        Returns:
+            Seconds.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        return float(self._blend(p).key_times[-1])
+
+    def displacement(self, p: Array | Sequence[float] | float) -> Array:
+        """Root displacement over the whole motion (one cycle), in the start frame (Y = 0).
+
+        Args:
+            p: adverbs.
+
+        Returns:
+            (3,) metres.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        return self._blend(p).disp.copy()
+
+    def net_turn(self, p: Array | Sequence[float] | float) -> float:
+        """Heading change over the whole motion.
+
+        Args:
+            p: adverbs.
+
+        Returns:
+            Radians.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        return self._blend(p).turn
+
+    def root_speed(self, p: Array | Sequence[float] | float) -> float:
+        """Mean horizontal root speed: |displacement_xz| / duration.
+
+        Args:
+            p: adverbs.
+
+        Returns:
+            m/s.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        b = self._blend(p)
+        return float(math.hypot(b.disp[0], b.disp[2]) / b.key_times[-1])
+
+    def canonical_time(self, p: Array | Sequence[float] | float, T: float | Array) -> float | Array:
+        """t(T) under the key-times at p.
+
+        Args:
+            p: adverbs.
+            T: verb time(s), clamped to [0, T^d(p)].
+
+        Returns:
+            Canonical time(s).
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        k = self._blend(p).key_times
+        out = np.interp(T, k, self._tgrid)
+        return float(out) if np.ndim(T) == 0 else out
+
+    def verb_time(self, p: Array | Sequence[float] | float, t: float | Array) -> float | Array:
+        """T(t) under the key-times at p.
+
+        Args:
+            p: adverbs.
+            t: canonical time(s), clamped to [0, 1].
+
+        Returns:
+            Verb time(s).
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        k = self._blend(p).key_times
+        out = np.interp(t, self._tgrid, k)
+        return float(out) if np.ndim(t) == 0 else out
+
+    def _dt_dT(self, k: Array, t: Array) -> Array:
+        n = k.size - 1
+        tc = np.mod(t, 1.0) if self.periodic else np.clip(t, 0.0, 1.0)
+        m = np.minimum(np.floor(tc * n).astype(int), n - 1)
+        return 1.0 / (n * (k[m + 1] - k[m]))
+
+    def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: bool = False
+             ) -> tuple[Array, Array] | tuple[Array, Array, Array]:
+        """The fast path for playback: root velocity and joint rotations at one canonical time.
+
+        The root velocity and the root rotation are relative to the trend frame (the start frame turned
+        by net_turn(p) t, which is the start frame itself for motions that do not turn), so a caller that
+        owns the heading H places the root at yaw_quat(H) * rotations[0] and moves it by
+        R_y(H) root_velocity.
+
+        Args:
+            p: adverbs (D,).
+            t: canonical time (wraps for periodic verbs, clamped otherwise).
+
+        Returns:
+            (root_velocity (3,) m/s, rotations (J, 4) unit quaternions (w, x, y, z)); with
+            ``with_position`` also the root position (3,) in the start frame (as ``sample`` gives it; its
+            Y is the root height) first.
+
+        Raises:
+            ValueError: wrong p, or key-times not strictly increasing at p.
+        """
+        b = self._blend(p)
+        tt = float(t)
+        tt = tt % 1.0 if self.periodic else min(max(tt, 0.0), 1.0)
+        seg = self.layout.segments
+        u = tt * seg
+        i = min(int(u), seg - 1)
+        f = u - i
+        f2, f3, g = f * f, f * f * f, 1.0 - f
+        wd = np.array(
+            [
+                [g * g * g / 6.0, (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0, (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0, f3 / 6.0],
+                [-0.5 * g * g * seg, (1.5 * f2 - 2.0 * f) * seg, (-1.5 * f2 + f + 0.5) * seg, 0.5 * f2 * seg],
+            ]
+        )
+        vd = wd @ (self._coef_t[i : i + 4] @ b.weights)  # (2, C): values and d/dt
+        nj = self.num_joints
+        v = vd[0, : 3 * nj].reshape(nj, 3)
+        ang = np.sqrt(np.einsum("ij,ij->i", v, v))
+        e = np.empty((nj, 4))
+        e[:, 0] = np.cos(0.5 * ang)
+        e[:, 1:] = v * (0.5 * np.sinc(ang * (0.5 / math.pi)))[:, None]  # sin(|v|/2) / |v|
+        rot = np.matmul(self._ref_left, e[:, :, None])[:, :, 0]
+        hres = float(vd[0, 3 * nj + 3])
+        c, s = math.cos(0.5 * hres), math.sin(0.5 * hres)
+        w0, x0, y0, z0 = rot[0].tolist()
+        rot[0] = (c * w0 - s * y0, c * x0 + s * z0, c * y0 + s * w0, c * z0 - s * x0)
+        kl = b.key_list
+        n = len(kl) - 1
+        m = min(int(tt * n), n - 1)
+        scale = 1.0 / (n * (kl[m + 1] - kl[m]))
+        vx, vy, vz = ((b.disp + vd[1, 3 * nj : 3 * nj + 3]) * scale).tolist()
+        if b.turn != 0.0:
+            a = -b.turn * tt
+            ca, sa = math.cos(a), math.sin(a)
+            vx, vz = ca * vx + sa * vz, -sa * vx + ca * vz
+        if with_position:
+            return vd[0, 3 * nj : 3 * nj + 3] + tt * b.disp, np.array([vx, vy, vz]), rot
+        return np.array([vx, vy, vz]), rot
+
+    def sample(self, p: Array | Sequence[float] | float, t: float | Array) -> VerbFrame:
+        """Everything at canonical time(s) t, in the start frame (t wraps for periodic verbs, without
+        accumulating cycles; use ``at_time`` for that).
+
+        Args:
+            p: adverbs (D,).
+            t: canonical time(s).
+
+        Returns:
+            A ``VerbFrame`` with leading axes of ``t``.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        b = self._blend(p)
+        ta = np.asarray(t, dtype=float)
+        tw = np.mod(ta, 1.0) if self.periodic else np.clip(ta, 0.0, 1.0)
+        idx, w, dw = self.layout.span(tw)
+        rows = b.cp[idx]  # (..., 4, C)
+        vals = np.einsum("...i,...ic->...c", w, rows)
+        dvals = np.einsum("...i,...ic->...c", dw, rows)
+        nj3 = 3 * self.num_joints
+        rot = qmul(self.reference, qexp(vals[..., :nj3].reshape((*ta.shape, self.num_joints, 3))))
+        scale = self._dt_dT(b.key_times, tw)[..., None]
+        pos = vals[..., nj3 : nj3 + 3] + tw[..., None] * b.disp
+        vel = (dvals[..., nj3 : nj3 + 3] + b.disp) * scale
+        heading = vals[..., nj3 + 3] + tw * b.turn
+        rate = (dvals[..., nj3 + 3] + b.turn) * scale[..., 0]
+        return VerbFrame(root_pos=pos, heading=heading, root_velocity=vel, heading_rate=rate, rotations=rot, t=tw)
+
+    def at_time(self, p: Array | Sequence[float] | float, T: float | Array) -> VerbFrame:
+        """Everything at verb time(s) T under p. Periodic verbs play on past T^d (and before 0), the root
+        carrying the displacement and turn of each completed cycle; other verbs clamp T to [0, T^d].
+
+        Args:
+            p: adverbs (D,).
+            T: verb time(s), seconds.
+
+        Returns:
+            A ``VerbFrame`` in the start frame.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        b = self._blend(p)
+        k = b.key_times
+        d = float(k[-1])
+        Ta = np.asarray(T, dtype=float)
+        if not self.periodic:
+            t = np.interp(np.clip(Ta, 0.0, d), k, self._tgrid)
+            return self.sample(p, t)
+        cycles = np.floor(Ta / d)
+        frac = Ta - cycles * d
+        t = np.interp(frac, k, self._tgrid)
+        fr = self.sample(p, t)
+        # after n cycles the frame has moved by sum_{k<n} R_y(k turn) disp and turned by n turn;
+        # with w = Z + iX a heading a multiplies by e^{ia}
+        disp_c = b.disp[2] + 1j * b.disp[0]
+        rot_n = np.exp(1j * b.turn * cycles)
+        step = np.exp(1j * b.turn)
+        geo = np.where(abs(b.turn) < 1e-12, cycles, (1.0 - rot_n) / np.where(abs(b.turn) < 1e-12, 1.0, 1.0 - step))
+        off = disp_c * geo
+        local = fr.root_pos[..., 2] + 1j * fr.root_pos[..., 0]
+        world = off + rot_n * local
+        vloc = fr.root_velocity[..., 2] + 1j * fr.root_velocity[..., 0]
+        vworld = rot_n * vloc
+        pos = np.stack([world.imag, fr.root_pos[..., 1], world.real], axis=-1)
+        vel = np.stack([vworld.imag, fr.root_velocity[..., 1], vworld.real], axis=-1)
+        return VerbFrame(
+            root_pos=pos,
+            heading=fr.heading + cycles * b.turn,
+            root_velocity=vel,
+            heading_rate=fr.heading_rate,
+            rotations=fr.rotations,
+            t=fr.t,
+        )
+
+    # -- bookkeeping ----------------------------------------------------------------------------
+
+    @property
+    def fit_rms(self) -> float:
+        """RMS error of the per-example B-spline fit over all channels (radians / metres)."""
+        return self._fit_rms
+
+    @property
+    def coefficients_per_frame(self) -> int:
+        """Coefficients one pose blends: 4 per channel plus the key-times (and 4 root-trend scalars)."""
+        return coefficients_per_frame(self.num_channels, self.num_key_times) + 4
+
+    @property
+    def storage(self) -> int:
+        """Coefficients the interpolant stores."""
+        return int(self.interpolant.coefficients.size)
+
+    def root_heading(self, p: Array | Sequence[float] | float, t: float) -> float:
+        """Root heading in the start frame at canonical time t (within one cycle).
+
+        Args:
+            p: adverbs.
+            t: canonical time.
+
+        Returns:
+            Radians.
+
+        Raises:
+            ValueError: wrong p or bad key-times.
+        """
+        return float(self.sample(p, t).heading)
+

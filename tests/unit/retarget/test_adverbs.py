@@ -1,0 +1,384 @@
+"""Radial basis interpolation, multiresolution interpolation, clustering, storage counts and the Verb
+(verbs-and-adverbs spec section 6, items 9-13)."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from retarget.adverbs import (
+    RBF,
+    Example,
+    MultiResolutionRBF,
+    Verb,
+    basic_clustering,
+    bspline_kernel,
+    coefficients_per_frame,
+    example_storage,
+    improved_clustering,
+    mrbf_storage,
+)
+from retarget.timeline import qexp, qmul, qslerp, split_heading, verb_time, yaw_quat
+
+TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "traces" / "d_mocap_cyclic"
+
+
+def walk_example(
+    point: tuple[float, ...],
+    speed: float,
+    period: float,
+    *,
+    joints: int = 30,
+    frames: int = 61,
+    crouch: float = 0.0,
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    key_frac: float = 0.45,
+) -> Example:
+    """A synthetic walk cycle: the root goes straight ahead from ``start`` (x, z, heading) at ``speed``,
+    bobs twice per cycle, and every joint swings with an amplitude that grows with speed."""
+    T = np.linspace(0.0, period, frames)
+    ph = 2.0 * np.pi * T / period
+    x0, z0, h0 = start
+    pos = np.stack(
+        [x0 + speed * T * math.sin(h0), 0.9 - crouch + 0.02 * np.sin(2 * ph), z0 + speed * T * math.cos(h0)], axis=1
+    )
+    rv = np.zeros((frames, joints, 3))
+    j = np.arange(1, joints)
+    rv[:, 1:, 0] = (0.3 + 0.15 * speed + crouch) * np.sin(ph[:, None] + 0.3 * j)
+    rv[:, 1:, 2] = 0.1 * np.cos(ph[:, None] + 0.2 * j)
+    rot = qexp(rv)
+    rot[:, 0] = qmul(yaw_quat(np.full(frames, h0)), qexp(np.stack([0.05 * np.sin(2 * ph), 0 * ph, 0 * ph], 1)))
+    return Example(point=point, times=T, root_pos=pos, rotations=rot, key_times=[0.0, key_frac * period, period])
+
+
+def locomotion_examples(joints: int = 30) -> list[Example]:
+    """The puppet's five clips at (speed, height): idle, walk, run, crouch_idle, crouch_walk."""
+    return [
+        walk_example((0.0, 1.0), 0.0, 2.0, joints=joints),
+        walk_example((0.5, 1.0), 1.4, 1.0, joints=joints),
+        walk_example((1.0, 1.0), 3.5, 0.7, joints=joints),
+        walk_example((0.0, 0.0), 0.0, 2.0, joints=joints, crouch=0.3),
+        walk_example((1.0, 0.0), 0.8, 1.2, joints=joints, crouch=0.3),
+    ]
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
+
+
+# -- 9. RBF in 1-D ----------------------------------------------------------------------------------
+
+
+def test_kernel_values() -> None:
+    assert bspline_kernel(0.0) == pytest.approx(2 / 3)
+    assert bspline_kernel(1.0) == pytest.approx(1 / 6)
+    assert bspline_kernel(-1.0) == pytest.approx(1 / 6)
+    assert bspline_kernel(2.0) == 0.0
+    assert bspline_kernel(3.0) == 0.0
+    x = np.linspace(0.0, 2.5, 2001)
+    assert np.max(np.abs(np.diff(bspline_kernel(x)))) < 1e-3  # continuous
+    np.testing.assert_allclose(bspline_kernel(0.5), (4 - 6 * 0.25 + 3 * 0.125) / 6)
+    np.testing.assert_allclose(bspline_kernel(1.5), 0.5**3 / 6)
+
+
+def test_rbf_1d_spec_numbers() -> None:
+    f = RBF([-10.0, 0.0, 10.0], [-1.0, 2.0, 1.0])
+    np.testing.assert_allclose(f.linear[:, 0], [2 / 3, 0.1], atol=1e-12)
+    np.testing.assert_allclose(f.residuals[:, 0], [-2 / 3, 4 / 3, -2 / 3], atol=1e-12)
+    np.testing.assert_allclose(f.alphas, [10.0, 10.0, 10.0])
+    np.testing.assert_allclose(f.kernel_matrix, [[2 / 3, 1 / 6, 0], [1 / 6, 2 / 3, 1 / 6], [0, 1 / 6, 2 / 3]], atol=1e-12)
+    np.testing.assert_allclose(f.radial[:, 0], [-12 / 7, 20 / 7, -12 / 7], atol=1e-12)
+    np.testing.assert_allclose(f(np.array([-10.0, 0.0, 10.0])), [-1.0, 2.0, 1.0], atol=1e-12)
+    assert f(5.0) == pytest.approx(1.678571, abs=1e-6)
+    assert f(40.0) == pytest.approx(4.666667, abs=1e-6)  # linear part only
+    assert f(40.0) == pytest.approx(2 / 3 + 0.1 * 40, abs=1e-12)
+
+
+def test_kernel_matrix_orientation_with_unequal_radii() -> None:
+    p = np.array([0.0, 1.0, 5.0])
+    f = RBF(p, [0.0, 1.0, -1.0])
+    np.testing.assert_allclose(f.alphas, [1.0, 1.0, 4.0])
+    for i2 in range(3):
+        for i1 in range(3):
+            assert f.kernel_matrix[i2, i1] == pytest.approx(bspline_kernel(abs(p[i2] - p[i1]) / f.alphas[i1]))
+    assert not np.allclose(f.kernel_matrix, f.kernel_matrix.T)
+    np.testing.assert_allclose(f(p), [0.0, 1.0, -1.0], atol=1e-12)
+
+
+def test_rbf_2d_many_channels() -> None:
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(0.0, 1.0, (7, 2))
+    vals = rng.normal(size=(7, 5))
+    f = RBF(pts, vals)
+    np.testing.assert_allclose(f(pts), vals, atol=1e-10)
+    np.testing.assert_allclose(f.basis(pts[2]) @ f.coefficients, vals[2], atol=1e-10)
+    # linear data is reproduced by the linear part alone, also far outside the hull
+    lin = 1.0 + pts @ np.array([2.0, -3.0])
+    g = RBF(pts, lin)
+    np.testing.assert_allclose(g.radial, 0.0, atol=1e-12)
+    assert g(np.array([5.0, 5.0])) == pytest.approx(1.0 + 10.0 - 15.0)
+
+
+def test_rbf_rejects_bad_input() -> None:
+    with pytest.raises(ValueError):
+        RBF(np.zeros((2, 2)) + [[0, 0], [1, 1]], [1.0, 2.0])  # fewer than D + 1
+    with pytest.raises(ValueError):
+        RBF([0.0, 0.0, 1.0], [1.0, 2.0, 3.0])  # coincident
+    with pytest.raises(ValueError):
+        RBF([0.0, 1.0], [1.0, 2.0, 3.0])
+    f = RBF([0.0, 1.0, 2.0], [1.0, 2.0, 0.0])
+    with pytest.raises(ValueError):
+        RBF([[0, 0], [1, 0], [0, 1]], [1, 2, 3])(np.array([1.0, 2.0, 3.0]))
+    assert f(1.0) == pytest.approx(2.0)
+
+
+# -- 10. multiresolution ----------------------------------------------------------------------------
+
+
+def test_mrbf_spec_numbers() -> None:
+    pts, vals = [-10.0, 0.0, 1.0, 10.0], [-1.0, 2.0, 2.0, 1.0]
+    m = MultiResolutionRBF(pts, vals, seed=0)
+    groups = [sorted(sorted(pts[i] for i in c) for c in lev.members()) for lev in m.levels]
+    assert groups[0] == [[-10.0], [0.0, 1.0], [10.0]]
+    assert groups[-1] == [[-10.0], [0.0], [1.0], [10.0]]
+    assert len(m.levels) == 2
+    np.testing.assert_allclose(sorted(m.level_points[0][:, 0]), [-10.0, 0.5, 10.0])
+    np.testing.assert_allclose(m(np.array(pts)), vals, atol=1e-12)
+    assert m(5.0) == pytest.approx(1.6848, abs=1e-4)
+    assert RBF([-10.0, 0.0, 10.0], [-1.0, 2.0, 1.0])(5.0) == pytest.approx(1.6786, abs=1e-4)
+    assert m(-5.0) == pytest.approx(0.583, abs=1e-3)
+    single = RBF(pts, vals)
+    np.testing.assert_allclose(single(np.array(pts)), vals, atol=1e-12)
+    assert single(5.0) == pytest.approx(0.789, abs=1e-3)
+    assert single(-5.0) == pytest.approx(-0.226, abs=1e-3)
+
+
+def test_mrbf_2d_interpolates_and_is_seeded() -> None:
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(0.0, 1.0, (12, 2))
+    vals = np.sin(3 * pts[:, :1]) + pts[:, 1:] ** 2
+    a = MultiResolutionRBF(pts, vals, seed=3)
+    b = MultiResolutionRBF(pts, vals, seed=3)
+    np.testing.assert_allclose(a(pts), vals, atol=1e-10)
+    np.testing.assert_array_equal(a.coefficients, b.coefficients)
+    counts = [lev.count for lev in a.levels]
+    assert counts[0] >= 3 and counts[-1] == 12 and all(np.diff(counts) > 0)
+
+
+# -- 11. clustering ---------------------------------------------------------------------------------
+
+
+def test_basic_clustering_spec_example() -> None:
+    c = basic_clustering([-10.0, 0.0, 1.0, 10.0], 3, rng=np.random.default_rng(0))
+    assert c.cost == pytest.approx(0.5)
+    groups = sorted(sorted([-10.0, 0.0, 1.0, 10.0][i] for i in g) for g in c.members())
+    assert groups == [[-10.0], [0.0, 1.0], [10.0]]
+    s = basic_clustering([-10.0, 0.0, 1.0, 10.0], 4, rng=np.random.default_rng(0))
+    assert s.cost == 0.0
+
+
+def test_clusters_never_empty_and_seeded() -> None:
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        pts = rng.normal(size=(9, 2)) * np.array([1.0, 3.0])
+        n = int(rng.integers(1, 10))
+        c = basic_clustering(pts, n, rng=np.random.default_rng(seed), restarts=4)
+        assert c.count == n
+        assert np.all(np.bincount(c.labels, minlength=n) >= 1)
+        again = basic_clustering(pts, n, rng=np.random.default_rng(seed), restarts=4)
+        np.testing.assert_array_equal(c.labels, again.labels)
+    with pytest.raises(ValueError):
+        basic_clustering([0.0, 1.0], 3, rng=np.random.default_rng(0))
+
+
+def test_improved_clustering_starts_at_d_plus_1() -> None:
+    rng = np.random.default_rng(9)
+    centres = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    pts = np.repeat(centres, 3, axis=0) + rng.normal(scale=0.1, size=(12, 2))
+    loose = improved_clustering(pts, max_cost=1e9, max_clusters=12, rng=np.random.default_rng(0))
+    assert loose.count == 3  # D + 1, not D
+    tight = improved_clustering(pts, max_cost=2.0, max_clusters=12, rng=np.random.default_rng(0))
+    assert tight.count == 4 and tight.cost <= 2.0
+    with pytest.raises(ValueError):
+        improved_clustering(pts[:2], max_cost=1.0, max_clusters=2, rng=np.random.default_rng(0))
+
+
+# -- 13. counts ------------------------------------------------------------------------------------
+
+
+def test_storage_counts() -> None:
+    assert coefficients_per_frame(44, 4) == 180
+    assert example_storage(44, 32, 20) == 28_160
+    assert mrbf_storage(44, 32, 4, 20, 4) == 63_540
+    assert mrbf_storage(44, 32, 4, 20, 4) / example_storage(44, 32, 20) == pytest.approx(2.26, abs=0.005)
+
+
+# -- 12. verbs ------------------------------------------------------------------------------------
+
+
+def test_verb_needs_d_plus_1_examples() -> None:
+    ex = locomotion_examples(joints=4)
+    with pytest.raises(ValueError, match="at least 3"):
+        Verb(ex[:2])
+    Verb(ex[:3], periodic=True)
+    with pytest.raises(ValueError):
+        Verb([ex[0], ex[1], walk_example((0.5,), 1.0, 1.0, joints=4)])  # mixed dimensions
+    with pytest.raises(ValueError):
+        Verb([ex[0], ex[1], walk_example((0.2, 0.2), 1.0, 1.0, joints=5)])  # other skeleton
+
+
+def test_verb_key_time_guard() -> None:
+    a = walk_example((0.0,), 1.0, 1.0, joints=3, key_frac=0.2)
+    b = walk_example((1.0,), 1.0, 1.0, joints=3, key_frac=0.8)
+    v = Verb([a, b])
+    np.testing.assert_allclose(v.key_times(0.5), [0.0, 0.5, 1.0], atol=1e-12)
+    v.key_times(1.2)  # still increasing
+    with pytest.raises(ValueError, match="strictly increasing"):
+        v.key_times(2.0)  # 0.2 + 0.6 * 2 = 1.4 > 1
+    with pytest.raises(ValueError):
+        v.pose(-1.0, 0.5)
+    with pytest.raises(ValueError):
+        v.duration((0.5, 0.5))
+
+
+def test_verb_reproduces_examples() -> None:
+    ex = locomotion_examples()
+    v = Verb(ex, periodic=True, num_cp=24)
+    assert v.fit_rms < 1e-3
+    t = np.linspace(0.0, 0.98, 25)
+    for e in ex:
+        p = e.point
+        assert v.duration(p) == pytest.approx(e.key_times[-1], abs=1e-12)
+        np.testing.assert_allclose(v.key_times(p), e.key_times, atol=1e-12)
+        speed = np.hypot(*(e.root_pos[-1] - e.root_pos[0])[[0, 2]]) / e.times[-1]
+        assert v.root_speed(p) == pytest.approx(speed, abs=1e-9)
+        fr = v.sample(p, t)
+        T = np.asarray(verb_time(t, e.key_times))
+        ref_pos = np.stack([np.interp(T, e.times, e.root_pos[:, k]) for k in range(3)], axis=1)
+        np.testing.assert_allclose(fr.root_pos, ref_pos - [ref_pos[0, 0], 0, ref_pos[0, 2]], atol=2e-3)
+        i = np.clip(np.searchsorted(e.times, T, side="right") - 1, 0, e.times.size - 2)
+        f = (T - e.times[i]) / (e.times[i + 1] - e.times[i])
+        ref_rot = qslerp(e.rotations[i], e.rotations[i + 1], np.repeat(f[:, None], 30, axis=1))
+        assert angle_between(fr.rotations[:, 1:], ref_rot[:, 1:]).max() < 5e-3  # B-spline fit vs slerp
+        _, tilt = split_heading(ref_rot[:, 0])
+        assert angle_between(fr.rotations[:, 0], tilt).max() < 5e-3
+
+
+def test_verb_blends_timing_and_stays_unit() -> None:
+    v = Verb(locomotion_examples(), periodic=True)
+    p = (0.2, 0.73)
+    k = v.key_times(p)
+    assert np.all(np.diff(k) > 0)
+    assert 0.7 < v.duration(p) < 2.0
+    assert 0.0 <= v.root_speed(p) < 3.5
+    vel, rot = v.pose(p, 0.3)
+    assert vel.shape == (3,) and rot.shape == (30, 4)
+    np.testing.assert_allclose(np.linalg.norm(rot, axis=1), 1.0, atol=1e-12)
+    # pose and sample agree; the velocity is d root_pos / dT
+    fr = v.sample(p, 0.3)
+    np.testing.assert_allclose(vel, fr.root_velocity, atol=1e-12)
+    h = 1e-5
+    T = v.verb_time(p, 0.3)
+    fwd = v.at_time(p, np.array([T - h, T + h]))
+    np.testing.assert_allclose((fwd.root_pos[1] - fwd.root_pos[0]) / (2 * h), vel, atol=1e-4)
+    np.testing.assert_allclose(np.abs(np.sum(rot[1:] * fr.rotations[1:], -1)), 1.0, atol=1e-12)
+    # a periodic verb plays on: one duration later the root is one displacement further
+    a = v.at_time(p, 0.4)
+    b = v.at_time(p, 0.4 + v.duration(p))
+    np.testing.assert_allclose(b.root_pos - a.root_pos, v.displacement(p), atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.sum(a.rotations * b.rotations, -1)), 1.0, atol=1e-12)
+
+
+def test_verb_hemisphere_consistent() -> None:
+    ex = locomotion_examples(joints=6)
+    flipped = []
+    sign = np.where(np.random.default_rng(10).random((61, 6, 1)) < 0.5, -1.0, 1.0)
+    for e in ex:
+        flipped.append(Example(e.point, e.times, e.root_pos, e.rotations * sign, e.key_times))
+    a, b = Verb(ex, periodic=True), Verb(flipped, periodic=True)
+    for p in [(0.3, 0.3), (0.9, 0.6)]:
+        for t in (0.1, 0.55):
+            np.testing.assert_allclose(np.abs(np.sum(a.pose(p, t)[1] * b.pose(p, t)[1], -1)), 1.0, atol=1e-9)
+
+
+def test_turning_verb_trend_frame() -> None:
+    # examples that turn left while walking: the net turn is interpolated and the velocity that pose()
+    # gives is in the turning frame (so it stays straight ahead)
+    def turning(point: float, rate: float) -> Example:
+        T = np.linspace(0.0, 1.0, 201)
+        h = rate * T
+        xz = np.stack([(1 - np.cos(h)) / rate, np.sin(h) / rate], 1) if rate else np.stack([0 * T, T], 1)
+        pos = np.stack([xz[:, 0], 0.9 + 0 * T, xz[:, 1]], 1)
+        rot = np.tile([1.0, 0, 0, 0], (201, 2, 1))
+        rot[:, 0] = yaw_quat(h)
+        return Example((point,), T, pos, rot, [0.0, 1.0])
+
+    v = Verb([turning(0.0, 0.5), turning(1.0, 1.0)], periodic=False)
+    assert v.net_turn(0.5) == pytest.approx(0.75, abs=1e-9)
+    for t in (0.2, 0.5, 0.9):
+        vel, rot = v.pose(0.5, t)
+        # straight ahead in the turning frame; the blended path averages two unit-speed arcs whose
+        # directions differ by (1.0 - 0.5) t, so its speed is cos of half that
+        assert vel[2] == pytest.approx(math.cos(0.25 * t), abs=2e-3) and abs(vel[0]) < 2e-3
+        np.testing.assert_allclose(np.abs(rot[0, 0]), 1.0, atol=1e-3)
+
+
+def test_mrbf_verb() -> None:
+    ex = locomotion_examples(joints=8)
+    ex.append(walk_example((0.55, 1.0), 1.5, 0.98, joints=8))  # a near-duplicate of walk
+    v = Verb(ex, periodic=True, interpolant="mrbf", seed=1)
+    for e in ex:
+        assert v.duration(e.point) == pytest.approx(e.key_times[-1], abs=1e-9)
+    assert v.storage == v.interpolant.coefficients.size
+    assert v.coefficients_per_frame == 4 * v.num_channels + 3 + 4
+
+
+def test_verb_from_real_clips() -> None:
+    paths = [TRACES / f"cmu_131_0{i}_start_walk_stop.bvh" for i in (1, 2)]
+    for path in paths:
+        if not path.exists():
+            pytest.skip(f"CMU walk not found at {path} (../shared/traces must sit beside the project)")
+    from retarget.bvh import CMU_SCALE, read_bvh
+
+    clips = [read_bvh(p, scale=CMU_SCALE)[1] for p in paths]
+    ex = [Example.from_clip(c, (float(i),)) for i, c in enumerate(clips)]
+    v = Verb(ex, num_cp=160, name="start_walk_stop")
+    assert v.num_joints == 31
+    # joints whose captured rotation is continuous (the CMU thumbs flip by ~pi between frames)
+    steps = [angle_between(c.rotations[1:], c.rotations[:-1]).max(axis=0) for c in clips]
+    smooth = np.flatnonzero(np.maximum(*steps) < 0.5)
+    assert smooth.size >= 25
+    for c, e in zip(clips, ex, strict=True):
+        assert v.duration(e.point) == pytest.approx(c.duration, abs=1e-9)
+        assert v.root_speed(e.point) == pytest.approx(c.root_speed(), rel=1e-6)
+        for t in (0.2, 0.5, 0.8):
+            _, rot = c.sample(t * c.duration)
+            _, r = v.pose(e.point, t)
+            err = angle_between(r[smooth[smooth > 0]], rot[smooth[smooth > 0]])
+            assert np.median(err) < 0.01 and err.max() < 0.1
+    mid = v.duration(0.5)
+    assert mid == pytest.approx(0.5 * (clips[0].duration + clips[1].duration), abs=1e-9)
+    _, r = v.pose(0.5, 0.5)
+    np.testing.assert_allclose(np.linalg.norm(r, axis=1), 1.0, atol=1e-12)
+
+
+def test_pose_cost_for_the_puppet() -> None:
+    # the puppet blends 5 clips over (speed, height) for a 30-joint skeleton every frame, with p moving;
+    # the budget for this part is 0.3 ms (best batch median, to be robust to a busy machine)
+    v = Verb(locomotion_examples(joints=30), periodic=True)
+    rng = np.random.default_rng(11)
+    ps = rng.uniform(0.0, 1.0, (200, 2))
+    best = math.inf
+    for _ in range(5):
+        times = []
+        for i in range(200):
+            t0 = time.perf_counter()
+            v.pose(ps[i], (i % 97) / 97)
+            v.duration(ps[i])
+            times.append(time.perf_counter() - t0)
+        best = min(best, float(np.median(times)))
+    assert best < 0.3e-3

@@ -1,0 +1,140 @@
+"""PuppetRetargeter end to end: scripted phone trajectories through the stick, the state machine, the
+blended clips and the ragdoll give the expected state timelines and sound poses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from retarget.puppet import PhoneInput, PuppetRetargeter
+from retarget.states import PuppetState as S
+
+
+@pytest.fixture(scope="module")
+def puppet() -> PuppetRetargeter:
+    return PuppetRetargeter()
+
+
+def yaw(deg: float) -> tuple[float, float, float, float]:
+    a = math.radians(deg) / 2
+    return (math.cos(a), 0.0, math.sin(a), 0.0)
+
+
+def run(p: PuppetRetargeter, path, seconds: float, fps: float = 60.0) -> list:
+    """path(t) -> (position, yaw_deg, touch)."""
+    p.reset()
+    frames = []
+    for i in range(int(seconds * fps)):
+        t = i / fps
+        pos, deg, touch = path(t)
+        frames.append(p.step(PhoneInput(t, yaw(deg), touch, tuple(pos))))
+    return frames
+
+
+def timeline(frames: list) -> list[S]:
+    out: list[S] = []
+    for f in frames:
+        if not out or out[-1] is not f.state:
+            out.append(f.state)
+    return out
+
+
+def test_hold_still_is_locomotion_at_idle(puppet: PuppetRetargeter) -> None:
+    fr = run(puppet, lambda t: ((0, 1.3, 0), 0.0, t > 0.2), 3.0)
+    assert timeline(fr) == [S.RELEASED, S.LOCOMOTION]
+    assert fr[-1].blend[0] < 0.05 and fr[-1].blend[1] > 0.95
+    for f in fr:
+        assert np.all(np.isfinite(f.rotations)) and np.allclose(np.linalg.norm(f.rotations, axis=1), 1, atol=1e-9)
+
+
+@pytest.mark.parametrize("speed,lo,hi", [(0.7, 0.2, 0.45), (1.4, 0.45, 0.55), (3.0, 0.8, 1.0)])
+def test_walk_and_run_follow_the_stick(puppet: PuppetRetargeter, speed: float, lo: float, hi: float) -> None:
+    fr = run(puppet, lambda t: ((0, 1.3, max(0.0, t - 1) * speed), 0.0, True), 6.0)
+    assert timeline(fr)[-1] is S.LOCOMOTION and S.RAGDOLL not in timeline(fr)
+    assert lo <= fr[-1].blend[0] <= hi
+    # the character keeps up with the stick (it is drawn to it, at the animation's own pace)
+    grabbed_z = 1.5
+    assert abs(fr[-1].root_pos[2] - (grabbed_z + 5 * speed)) < 0.3 * speed + 0.1
+    # its speed matches over the last 2 s
+    z = np.array([f.root_pos[2] for f in fr[-120:]])
+    assert abs((z[-1] - z[0]) / (119 / 60) - speed) < 0.05 * speed + 0.02
+
+
+def test_crouch_when_the_stick_goes_down(puppet: PuppetRetargeter) -> None:
+    fr = run(puppet, lambda t: ((0, 1.3 - 0.35 * min(1.0, max(0.0, t - 1)), 0), 0.0, True), 4.0)
+    assert timeline(fr) == [S.LOCOMOTION]      # held from the first frame
+    assert fr[-1].blend[1] < 0.3
+    assert fr[-1].root_pos[1] < fr[0].root_pos[1] - 0.1
+
+
+def jump_path(rise_twice: bool = False, turn: float = 0.0, hover: bool = False):
+    def path(t: float):
+        if t < 1.0:
+            return (0, 1.3, 0), 0.0, True
+        s = t - 1.0
+        z = 1.0 * s
+        if hover and s > 0.35:      # stops in the air
+            return (0, 1.3 + 2.5 * 0.35, 0.35), 0.0, True
+        v0 = 2.5
+        y = 1.3 + v0 * s - 0.5 * 9.81 * s * s
+        if rise_twice and s > 0.35:
+            y = 1.3 + v0 * 0.35 - 0.5 * 9.81 * 0.35 ** 2 + 1.5 * (s - 0.35)
+        deg = turn * min(1.0, max(0.0, (s - 0.35) / 0.1))   # turning once airborne
+        return (0, max(1.3, y), z), deg, True
+    return path
+
+
+def test_a_clean_jump_lands(puppet: PuppetRetargeter) -> None:
+    fr = run(puppet, jump_path(), 3.5)
+    tl = timeline(fr)
+    assert tl[:4] == [S.LOCOMOTION, S.JUMP_ANTICIPATION, S.AIRBORNE, S.LANDING], tl
+    assert tl[-1] is S.LOCOMOTION and S.RAGDOLL not in tl
+    t_anti = next(f.t for f in fr if f.state is S.JUMP_ANTICIPATION)
+    t_air = next(f.t for f in fr if f.state is S.AIRBORNE)
+    assert abs((t_air - t_anti) - 0.2) <= 1 / 60 + 1e-9       # the anticipation squat
+
+
+@pytest.mark.parametrize("kind", ["rise_twice", "turn", "hover"])
+def test_invalid_jumps_fall_limp(puppet: PuppetRetargeter, kind: str) -> None:
+    path = jump_path(rise_twice=kind == "rise_twice", turn=45.0 if kind == "turn" else 0.0, hover=kind == "hover")
+    fr = run(puppet, path, 2.5)
+    tl = timeline(fr)
+    assert S.AIRBORNE in tl and S.RAGDOLL in tl, tl
+    assert tl.index(S.RAGDOLL) > tl.index(S.AIRBORNE)
+
+
+def test_ragdoll_held_up_then_put_down_gets_up(puppet: PuppetRetargeter) -> None:
+    # lifted 0.6 m without jump momentum: ragdoll (hanging from the stick); put down and let go: it
+    # lies still, then gets up and stands
+    def path(t: float):
+        if t < 1.0:
+            return (0, 1.3, 0), 0.0, True
+        if t < 3.0:
+            return (0, 1.3 + 0.6 * min(1.0, (t - 1.0) / 1.5), 0), 0.0, True
+        return (0, 1.3, 0), 0.0, False
+    fr = run(puppet, path, 9.0)
+    tl = timeline(fr)
+    assert S.RAGDOLL in tl and S.GET_UP in tl, tl
+    assert tl.index(S.GET_UP) > tl.index(S.RAGDOLL)
+    assert tl[-1] in (S.RELEASED, S.LOCOMOTION)
+    ragdoll = [f for f in fr if f.state is S.RAGDOLL]
+    joints = puppet.skeleton.fk(ragdoll[-1].root_pos, ragdoll[-1].rotations)
+    assert joints[:, 1].min() > -0.05                        # nothing through the floor
+    final = puppet.skeleton.fk(fr[-1].root_pos, fr[-1].rotations)
+    assert final[puppet.skeleton.index("Head"), 1] > 1.4     # standing again
+
+
+def test_release_while_grounded(puppet: PuppetRetargeter) -> None:
+    fr = run(puppet, lambda t: ((0, 1.3, 0), 0.0, 0.2 < t < 2.0), 3.0)
+    assert timeline(fr) == [S.RELEASED, S.LOCOMOTION, S.RELEASED]
+
+
+def test_time_must_not_go_back(puppet: PuppetRetargeter) -> None:
+    puppet.reset()
+    puppet.step(PhoneInput(1.0, (1.0, 0, 0, 0), False))
+    with pytest.raises(ValueError):
+        puppet.step(PhoneInput(0.5, (1.0, 0, 0, 0), False))
+    with pytest.raises(ValueError):
+        puppet.step(PhoneInput(2.0, (0.0, 0, 0, 0), False))
