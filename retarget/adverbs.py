@@ -807,7 +807,16 @@ class Verb:
             pos, rot = _resample(e.times, e.root_pos, e.rotations, np.asarray(verb_time(ts, e.key_times)))
             h, tilt = split_heading(rot[:, 0])
             h = np.unwrap(h)
-            pos, h = reorient(pos, h)
+            if periodic and abs(h[-1] - h[0]) < 1e-3:
+                # a cycle that does not turn: its frame is the mean heading (the way it travels), not
+                # the first frame's, where the pelvis may be turned a few degrees mid-sway; otherwise
+                # the whole cycle is reoriented off its path and the feet slide sideways when it is
+                # played along a straight line
+                h_mean, h0 = float(np.mean(h)), float(h[0])
+                pos, h = reorient(pos, h - h0 + h_mean)     # rotated by -h_mean about the start
+                h = h + h0 - h_mean                         # headings relative to the mean
+            else:
+                pos, h = reorient(pos, h)
             rot = rot.copy()
             rot[:, 0] = tilt
             pos_all.append(pos)

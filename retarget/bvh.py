@@ -130,7 +130,7 @@ class _Parser:
             raise self.error(f"CHANNELS needs a count, got {tok!r}", nline) from None
         if not 0 <= n <= 6:
             raise self.error(f"CHANNELS count must be 0..6, got {n}", nline)
-        names = []
+        names: list[str] = []
         while len(names) < n and self.peek() in _ROT.keys() | _POS.keys():
             names.append(self.next("a channel name")[0])
         if len(names) != n:
@@ -347,9 +347,9 @@ def format_bvh(clip: Clip, *, scale: float = 1.0, order: str = "ZXY") -> str:
     if sorted(order) != ["X", "Y", "Z"]:
         raise ValueError(f"order must be a permutation of 'XYZ', got {order!r}")
     sk = clip.skeleton
-    for n in sk.names:
-        if not n or any(c.isspace() for c in n) or "{" in n or "}" in n:
-            raise ValueError(f"joint name {n!r} cannot be written to BVH")
+    for joint in sk.names:
+        if not joint or any(c.isspace() for c in joint) or "{" in joint or "}" in joint:
+            raise ValueError(f"joint name {joint!r} cannot be written to BVH")
     n = sk.n_joints
     kids: list[list[int]] = [[] for _ in range(n)]
     for j in range(1, n):

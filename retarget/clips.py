@@ -2,15 +2,16 @@
 no downloads: ``default_clips()`` returns idle, walk, run, crouch_idle, crouch_walk, get_up and mid_jump.
 
 Locomotion is planned, not keyframed. Each foot follows a plan in the world: in stance the ball of the foot
-(the Toes joint) stays where it touched down while the heel rolls up before toe-off; in swing it travels to
-the next foothold on a smooth arc, landing with zero horizontal velocity. The root advances along +Z at the
-clip's constant speed, sways towards the stance foot and bobs; its height is the highest smooth curve that
-keeps both planned ankles within reach. The legs are then solved with analytic two-bone IK (knees towards
-the pelvis's forward direction), arms swing against the legs, the spine counter-rotates the pelvis and the
-head keeps looking ahead. A loop starts at the left foot's touch-down; its key-times are the touch-downs.
-get_up (lying on the back to the idle pose) and mid_jump (a tucked airborne pose) interpolate a few key
-poses with monotone cubic curves and use the same IK. Every clip starts with the root at X = Z = 0, facing +Z. Everything is deterministic. Lengths and speeds scale
-with the leg length of the skeleton (1 for ``humanoid(1.75)``); durations do not.
+(the Toes joint) stays where it touched down while the heel rolls up before toe-off; in swing the ankle
+travels to the next foothold on an arc that comes down steeply, landing flat with no horizontal velocity.
+The root advances along +Z at the clip's constant speed, sways towards the stance foot and bobs; the bob
+curve is lowered until every planned ankle is within reach (99.5% of the leg in stance). The legs are then
+solved with analytic two-bone IK (knees towards the pelvis's forward direction), arms swing against the
+legs, the spine counter-rotates the pelvis and the head keeps looking ahead. A loop starts at the left
+foot's touch-down; its key-times are the touch-downs. get_up (lying on the back to the idle pose) and
+mid_jump (a tucked airborne pose) interpolate a few key poses with monotone cubic curves and use the same
+IK. Every clip starts with the root at X = Z = 0, facing +Z. Everything is deterministic. Lengths and
+speeds scale with the leg length of the skeleton (1 for ``humanoid(1.75)``); durations do not.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ class Gait:
         speed: root speed along +Z, m/s.
         cycle: seconds per loop (two steps).
         duty: fraction of the cycle each foot is on the ground (> 0.5 walks, < 0.5 has a flight phase).
-        lift: swing height of the ball of the foot, m.
+        lift: height of the swing arc of the ankle, m.
         lift_skew: exponent on the swing phase of the lift arc (< 1 peaks early, heel kicked up).
         heel_off: fraction of the stance after which the heel starts rising.
         toe_off_pitch: foot pitch at toe-off (heel up), degrees.

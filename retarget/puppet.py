@@ -99,7 +99,7 @@ class PuppetConfig:
     pivot: tuple[float, float, float] = (0.0, 1.3, 0.0)
     crouch: AxisMap = field(default_factory=lambda: AxisMap(0.6, 0.95))
     crossfade: float = 0.2
-    follow_s: float = 0.6
+    follow_s: float = 1.5
     num_cp: int = 64
     hold_joint: str = "Chest"
     machine: MachineConfig | None = None

@@ -394,7 +394,9 @@ class Skeleton:
 
     def rest_positions(self) -> np.ndarray:
         """``(J, 3)`` world positions with every rotation the identity and the root position at 0."""
-        return self.fk(np.zeros(3), np.tile([1.0, 0.0, 0.0, 0.0], (len(self.names), 1)))
+        out = self.fk(np.zeros(3), np.tile([1.0, 0.0, 0.0, 0.0], (len(self.names), 1)))
+        assert isinstance(out, np.ndarray)
+        return out
 
     def with_bone_lengths(self, scale: Mapping[str, float] | np.ndarray) -> Skeleton:
         """A copy with stretched (or shrunk) bones, e.g. a longer neck for a bigger head.

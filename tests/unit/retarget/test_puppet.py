@@ -114,7 +114,7 @@ def test_ragdoll_held_up_then_put_down_gets_up(puppet: PuppetRetargeter) -> None
         if t < 3.0:
             return (0, 1.3 + 0.6 * min(1.0, (t - 1.0) / 1.5), 0), 0.0, True
         return (0, 1.3, 0), 0.0, False
-    fr = run(puppet, path, 9.0)
+    fr = run(puppet, path, 12.0)
     tl = timeline(fr)
     assert S.RAGDOLL in tl and S.GET_UP in tl, tl
     assert tl.index(S.GET_UP) > tl.index(S.RAGDOLL)
