@@ -450,11 +450,14 @@ def _get_up(rig: _Rig) -> Clip:
     root[-1] = end.root[0]
     pos = rig.sk.fk(root, rot)
     assert isinstance(pos, np.ndarray)
+    # planted: on the ground (ball or heel) and not dragged (ankle slower than 5 cm/s, pulling the feet in
+    # is a slide, not a contact to lock)
     contacts = {}
     for s, key in (("Left", "left_foot"), ("Right", "right_foot")):
         _, _, ankle_j, toes_j = rig.leg[s]
-        contacts[key] = ((pos[:, toes_j, 1] < rig.ball_h + 0.02 * k)
-                         | (pos[:, ankle_j, 1] < rig.ankle_h + 0.02 * k))
+        low = (pos[:, toes_j, 1] < rig.ball_h + 0.02 * k) | (pos[:, ankle_j, 1] < rig.ankle_h + 0.02 * k)
+        speed = np.linalg.norm(np.gradient(pos[:, ankle_j], axis=0), axis=1) * DEFAULT_FPS
+        contacts[key] = low & (speed < 0.05 * k)
     # key-times: when the warped clock passes the key poses (the inverse of the smoothstep)
     y = np.array(keys) / duration
     key_times = duration * (0.5 - np.sin(np.arcsin(1.0 - 2.0 * y) / 3.0))
@@ -501,7 +504,8 @@ def default_clips(skeleton: Skeleton | None = None) -> dict[str, Clip]:
     Loops (``loop=True``): idle (2 s, breathing), walk (1.4 m/s, 1.0 s cycle), run (3.5 m/s, 0.7 s),
     crouch_idle (2 s) and crouch_walk (0.8 m/s, 1.2 s); walk, run and crouch_walk start at the left foot's
     touch-down and their key-times are the touch-downs. One-shots: get_up (1.5 s, lying on the back to the
-    idle's first pose, 0.35 m further along +Z; key-times at its key poses) and mid_jump (0.5 s; key-time at the tuck). All at
+    idle's first pose, 0.35 m further along +Z; key-times at its key poses; contacts where a foot rests
+    still on the floor, not while the feet are dragged in) and mid_jump (0.5 s; key-time at the tuck). All at
     ``DEFAULT_FPS``; speeds and lengths scale with the skeleton's leg length relative to ``humanoid(1.75)``.
 
     Args:

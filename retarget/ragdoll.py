@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from retarget.skeleton import quat_from_matrix
+
 
 @dataclass
 class RagdollSettings:
@@ -31,7 +33,7 @@ class RagdollSettings:
     radius: float = 0.05          # joint radius against the ground (m)
     max_bend_deg: float = 150.0   # joint limit: angle between a bone and its parent bone
     hold_rate: float = 60.0       # 1/s: how fast the held joint closes on the stick's end
-    iterations: int = 10          # constraint passes per step
+    iterations: int = 5           # constraint passes per step
     rest_speed: float = 0.08      # m/s: below this (every joint) for rest_time it is at rest
     rest_time: float = 0.3
 
@@ -74,8 +76,29 @@ class Ragdoll:
         self.pos = np.zeros((j, 3))
         self.prev = np.zeros((j, 3))
         self._still = 0.0
-        self._rest_seen = np.zeros((j, 3))
+        self._held = False
         self.children = [np.flatnonzero(self.parents == i) for i in range(j)]
+        # incidence matrices: a bone's (or limit's) correction moves its two joints in opposite ways
+        self._bone_incidence = np.zeros((j, self.bones.size))
+        self._bone_incidence[self.bones, np.arange(self.bones.size)] = -1.0
+        self._bone_incidence[self.parents[self.bones], np.arange(self.bones.size)] = 1.0
+        self._limit_incidence = np.zeros((j, self.limited.size))
+        self._limit_incidence[self.limited, np.arange(self.limited.size)] = 1.0
+        self._limit_incidence[self.gp[self.limited], np.arange(self.limited.size)] = -1.0
+        degree = np.bincount(np.concatenate([self.bones, self.parents[self.bones]]), minlength=j)
+        self._relax = (1.0 / np.maximum(degree, 1))[:, None]
+        self._single = np.array([i for i in range(j) if self.children[i].size == 1
+                                 and self.lengths[self.children[i][0]] > 1e-9], dtype=np.int64)
+        self._single_child = np.array([self.children[i][0] for i in self._single], dtype=np.int64)
+        real = [ch[self.lengths[ch] > 1e-9] for ch in self.children]
+        multi = [i for i in range(j) if real[i].size > 1]
+        # the first child is the main bone, the second the one farthest from its line (fixes the roll)
+        self._multi = np.array(multi, dtype=np.int64)
+        self._multi_a = np.array([real[i][0] for i in multi], dtype=np.int64)
+        self._multi_b = np.array([real[i][int(np.argmax([np.linalg.norm(np.cross(
+            self.offsets[real[i][0]] / self.lengths[real[i][0]], self.offsets[c])) for c in real[i]]))]
+            for i in multi], dtype=np.int64)
+        self._leaves = [i for i in range(j) if real[i].size == 0 and self.parents[i] >= 0]
 
     def start(self, positions: np.ndarray, velocities: np.ndarray | None = None, dt: float = 1 / 60) -> None:
         """Take over from an animated pose: world joint positions ``(J, 3)`` and their velocities."""
@@ -103,6 +126,7 @@ class Ragdoll:
         acc -= s.damping * vel
         acc[on_ground, 0] -= s.friction * vel[on_ground, 0]
         acc[on_ground, 2] -= s.friction * vel[on_ground, 2]
+        self._held = hold is not None
         new = self.pos + vel * dt + acc * dt * dt
         self.prev = self.pos
         self.pos = new
@@ -121,17 +145,14 @@ class Ragdoll:
         return self.pos
 
     def _bones(self) -> None:
+        # Jacobi: every bone's correction at once (equal masses: each end moves half the way), summed
+        # per joint; vectorised, so cheap enough to iterate more often than a sequential pass
         c = self.bones
         p = self.parents[c]
         d = self.pos[c] - self.pos[p]
-        n = np.linalg.norm(d, axis=1)
-        ok = n > 1e-9
-        corr = np.zeros_like(d)
-        corr[ok] = d[ok] * ((n[ok] - self.lengths[c][ok]) / n[ok])[:, None] * 0.5
-        # equal masses: each end moves half the way (sequentially for stability)
-        for k in range(c.size):
-            self.pos[c[k]] -= corr[k]
-            self.pos[p[k]] += corr[k]
+        n = np.sqrt(np.einsum("ij,ij->i", d, d))
+        scale = np.where(n > 1e-9, (n - self.lengths[c]) / np.maximum(n, 1e-9), 0.0) * 0.5
+        self.pos += (self._bone_incidence @ (d * scale[:, None])) * self._relax
 
     def _limits(self) -> None:
         if self.limited.size == 0:
@@ -139,12 +160,12 @@ class Ragdoll:
         j = self.limited
         g = self.gp[j]
         d = self.pos[j] - self.pos[g]
-        n = np.linalg.norm(d, axis=1)
+        n = np.sqrt(np.einsum("ij,ij->i", d, d))
         short = (n < self.min_dist) & (n > 1e-9)
-        for k in np.flatnonzero(short):
-            push = d[k] / n[k] * (self.min_dist[k] - n[k]) * 0.5
-            self.pos[j[k]] += push
-            self.pos[g[k]] -= push
+        if not short.any():
+            return
+        amount = np.where(short, (self.min_dist - n) / np.maximum(n, 1e-9) * 0.5, 0.0)
+        self.pos += self._limit_incidence @ (d * amount[:, None])
 
     def _ground(self) -> None:
         floor = self.ground_y + self.s.radius
@@ -153,33 +174,73 @@ class Ragdoll:
 
     @property
     def at_rest(self) -> bool:
-        """Still (every joint slower than ``rest_speed``) for ``rest_time`` and lying near the ground."""
-        return self._still >= self.s.rest_time and float(self.pos[:, 1].min()) <= self.ground_y + 2 * self.s.radius
+        """Not held, still (every joint slower than ``rest_speed``) for ``rest_time``, and lying on the ground."""
+        return (not self._held and self._still >= self.s.rest_time
+                and float(self.pos[:, 1].min()) <= self.ground_y + 2 * self.s.radius)
 
     def rotations(self) -> tuple[np.ndarray, np.ndarray]:
         """The pose as the skeleton's root position ``(3,)`` and local rotations ``(J, 4)`` (w, x, y, z)."""
         jn = self.parents.size
-        world = [Rotation.identity()] * jn
-        for i in range(jn):
-            ch = self.children[i]
-            ch = ch[self.lengths[ch] > 1e-9]
-            if ch.size == 0:
-                world[i] = world[self.parents[i]] if self.parents[i] >= 0 else Rotation.identity()
-                continue
-            cur = self.pos[ch] - self.pos[i]
-            rest = self.offsets[ch]
-            if ch.size == 1:
-                world[i] = _swing(rest[0], cur[0])
-            else:
-                rot, _ = Rotation.align_vectors(cur, rest)
-                world[i] = rot
-        local = np.empty((jn, 4))
-        for i in range(jn):
-            p = self.parents[i]
-            r = world[i] if p < 0 else world[p].inv() * world[i]
-            q = r.as_quat()
-            local[i] = (q[3], q[0], q[1], q[2])
+        world = np.zeros((jn, 4))
+        world[:, 0] = 1.0
+        # joints with one child: the smallest rotation taking the rest bone onto the current one
+        if self._single.size:
+            world[self._single] = _swing_many(self.offsets[self._single_child],
+                                              self.pos[self._single_child] - self.pos[self._single])
+        # joints with several children (hips, chest, hands): the first child's bone exactly, the roll
+        # about it from the second (the triad method), all at once
+        if self._multi.size:
+            world[self._multi] = _triad(self.offsets[self._multi_a], self.offsets[self._multi_b],
+                                        self.pos[self._multi_a] - self.pos[self._multi],
+                                        self.pos[self._multi_b] - self.pos[self._multi])
+        for i in self._leaves:
+            world[i] = world[self.parents[i]]       # leaves follow their parent (parents come first)
+        local = world.copy()
+        has = self.parents >= 0
+        par = world[self.parents[has]]
+        local[has] = _qmul(par * np.array([1.0, -1.0, -1.0, -1.0]), world[has])
         return self.pos[0].copy(), local
+
+
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    e1 = a / np.linalg.norm(a, axis=1, keepdims=True)
+    e3 = _cross(e1, b)
+    e3 = e3 / np.maximum(np.linalg.norm(e3, axis=1, keepdims=True), 1e-12)
+    e2 = _cross(e3, e1)
+    return np.stack([e1, e2, e3], axis=2)          # columns
+
+
+def _triad(ra: np.ndarray, rb: np.ndarray, ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
+    """Quaternions (w, x, y, z) of the rotations taking rest directions (ra, rb) to current (ca, cb):
+    ``ra`` onto ``ca`` exactly, the plane of the two as close as possible."""
+    m = np.einsum("nij,nkj->nik", _frames(ca, cb), _frames(ra, rb))
+    return quat_from_matrix(m)
+
+
+def _swing_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Quaternions (w, x, y, z) of the smallest rotations taking the directions ``a`` onto ``b``."""
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    c = np.einsum("ij,ij->i", a, b)
+    q = np.concatenate([(1.0 + c)[:, None], _cross(a, b)], axis=1)
+    opposite = c < -1.0 + 1e-9
+    if np.any(opposite):
+        for k in np.flatnonzero(opposite):
+            r = _swing(a[k], b[k]).as_quat()
+            q[k] = (r[3], r[0], r[1], r[2])
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _swing(a: np.ndarray, b: np.ndarray) -> Rotation:

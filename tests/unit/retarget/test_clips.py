@@ -177,6 +177,16 @@ def test_get_up_goes_from_lying_to_the_idle_pose(clips: dict[str, Clip]) -> None
     assert np.abs(pos[-1] - moved - idle_first).max() < 0.02
     assert get_up.key_times[0] == 0.0 and get_up.key_times[-1] == pytest.approx(1.5)
     assert pos[..., 1].min() > 0.0  # nothing under the floor
+    # the feet rest, are dragged in, then planted for the rise: contacts only where they stand still
+    for side, key in FEET:
+        contact = get_up.contacts[key]
+        assert not contact[get_up.n_frames // 4]
+        ankle = pos[:, sk.index(f"{side}Foot")]
+        runs = stance_runs(contact)
+        a, b = runs[-1]
+        assert b == get_up.n_frames and b - a > get_up.n_frames // 3
+        for a, b in runs:
+            assert np.abs(ankle[a:b] - ankle[a]).max() < 0.01
     # the head comes up from the floor to standing height, never dipping back to the floor on the way
     head_y = pos[:, sk.index("Head"), 1]
     assert head_y[0] < 0.3 and head_y[-1] > 1.4
