@@ -26,7 +26,7 @@ from retarget.vmc import decode_frame, encode_frame
 
 
 def scripted(seconds: float, fps: float) -> list[PhoneInput]:
-    """Hold, walk, run, crouch, a jump: every state the per-frame budget must cover."""
+    """Hold, walk, run, crouch, a hop, set down: every state the per-frame budget must cover."""
     out = []
     z = 0.0
     for i in range(int(seconds * fps)):
@@ -38,6 +38,8 @@ def scripted(seconds: float, fps: float) -> list[PhoneInput]:
         if 10.5 <= s < 11.0:                      # a hop
             u = s - 10.5
             y = 1.3 + max(0.0, 2.2 * u - 4.9 * u * u)
+        if s >= 11.0:                             # set down (if it fell limp, it lies and gets up)
+            y = 0.35
         out.append(PhoneInput(t, (1.0, 0.0, 0.0, 0.0), True, (0.0, y, z)))
     return out
 
