@@ -969,6 +969,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         else:
             out(f"  live: following wrist/imu on the bus, no cycle during the take"
                 f" ({follow[0].extractor.last_error or 'too few loops'})")
+    _demo_puppet(reader)
     out(f"\nnext: perfcap info {path}   |   perfcap replay {path} --speed 2   |   "
         f"perfcap export {path} --format csv -o export/   |   perfcap cycle {path} --stream wrist/imu")
     return 0
@@ -1029,6 +1030,180 @@ def _demo_cycle(reader: Any, cap: Any) -> None:
         out(f"  (the loop or its report could not be written: {exc})")
         return
     out(f"  loop written to {loop_csv}; report (the aligned loops and the cycle per channel) {png}")
+
+
+# ------------------------------------------------------------------------------------------------
+# perfcap puppet: a character on an invisible stick from a phone
+def _check_writable(path: str | None, flag: str) -> None:
+    if path is None:
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ConfigError(f"{flag} {path}: the folder {folder} does not exist")
+    if os.path.isdir(path):
+        raise ConfigError(f"{flag} {path} is a directory")
+
+
+def _puppet_outputs(run: Any, args: argparse.Namespace) -> list[str]:
+    """Write the BVH and the timeline; what was written, as summary lines.
+
+    Raises:
+        ConfigError: a file cannot be written.
+    """
+    from retarget.bvh import write_bvh
+
+    lines = []
+    if args.output:
+        clip = run.clip(os.path.splitext(os.path.basename(args.output))[0] or "puppet")
+        try:
+            write_bvh(args.output, clip)
+        except OSError as exc:
+            raise ConfigError(f"cannot write {args.output}: {exc.strerror or exc}") from None
+        lines.append(f"  BVH written to {args.output} ({clip.n_frames} frames at {clip.fps:g} fps,"
+                     f" {clip.skeleton.n_joints} joints)")
+    if args.timeline:
+        tl = run.timeline()
+        try:
+            with open(args.timeline, "w", encoding="utf-8") as f:
+                f.write("[\n" + ",\n".join(" " + json.dumps(e) for e in tl) + "\n]\n")
+        except OSError as exc:
+            raise ConfigError(f"cannot write {args.timeline}: {exc.strerror or exc}") from None
+        lines.append(f"  timeline written to {args.timeline} ({len(tl)} entries)")
+    return lines
+
+
+def cmd_puppet(args: argparse.Namespace) -> int:
+    from capture.puppet_run import (
+        PuppetRun,
+        VmcSender,
+        check_rate,
+        parse_host_port,
+        read_trajectory,
+        session_track,
+    )
+
+    rate = check_rate(args.rate)
+    if args.duration is not None:
+        if not args.phone:
+            raise ConfigError("--duration is for --phone (a trajectory or a session is driven to its end)")
+        _check_duration(args.duration)
+    if args.device is not None and not args.session:
+        raise ConfigError("--device chooses the phone of a --session")
+    _check_writable(args.output, "-o")
+    _check_writable(args.timeline, "--timeline")
+    if args.vmc:
+        parse_host_port(args.vmc)
+    spec = None
+    if args.phone:
+        from devices import parse_device_spec
+
+        spec = parse_device_spec(args.phone)
+    track = None
+    notes: list[str] = []
+    if args.input:
+        track = read_trajectory(args.input)
+    elif args.session:
+        from capture.session import SessionReader
+
+        track = session_track(SessionReader(args.session), args.device)
+    if track is not None:
+        notes = list(track.notes)
+        if args.hold and not track.held_throughout:
+            from dataclasses import replace
+
+            track = replace(track, held_throughout=True)
+            notes.append("--hold: the phone counts as held throughout (touches ignored)")
+    from retarget.puppet import PuppetRetargeter
+
+    retargeter = PuppetRetargeter()
+    vmc = VmcSender(args.vmc, retargeter.skeleton) if args.vmc else None
+    run = PuppetRun(retargeter, rate=rate, vmc=vmc, keep_frames=bool(args.output))
+    code = 0
+    try:
+        if track is None:
+            source, code, notes = _puppet_live(args, spec, run)
+        else:
+            source = track.source
+            run.run(track.resample(rate))
+    finally:
+        if vmc is not None:
+            vmc.close()
+    if not run.frames:
+        print(f"perfcap: error: no phone orientation from {source}: the puppet was not driven", file=sys.stderr)
+        return EXIT_CHECK_FAILED
+    out(f"puppet: {run.frames} frames at {rate:g} Hz ({run.duration:.2f} s) from {source}")
+    for note in notes:
+        out(f"  note: {note}")
+    out("  states: " + ", ".join(f"{s} {t:.2f} s" for s, t in run.state_times().items())
+        + f" ({len(run.timeline()) - 1} change(s))")
+    for line in _puppet_outputs(run, args):
+        out(line)
+    if vmc is not None:
+        out(f"  VMC: {vmc.sent} bundle(s) sent to {args.vmc} over UDP"
+            + (f", {vmc.errors} send error(s) (first: {vmc.first_error})" if vmc.errors else ""))
+        if vmc.errors and not vmc.sent:
+            print(f"perfcap: error: no VMC bundle could be sent to {args.vmc} ({vmc.first_error})", file=sys.stderr)
+            code = code or EXIT_CHECK_FAILED
+    return code
+
+
+def _puppet_live(args: argparse.Namespace, spec: Any, run: Any) -> tuple[str, int, list[str]]:
+    """``--phone``: the device on a bus, followed until Ctrl-C, ``--duration`` or its end."""
+    from capture.bus import Overflow
+    from capture.pipeline import Capture
+    from capture.puppet_run import PuppetFollower
+
+    cap = Capture([spec], meta={"command": " ".join(sys.argv)})
+    try:
+        dev = cap.devices[0]
+        follower = PuppetFollower.for_device(dev.name, dev.streams, run, hold=True if args.hold else None)
+        cap.subscribe(follower, policy=Overflow.NEVER_DROP, name="puppet")
+    except BaseException:
+        cap.stop()
+        raise
+    notes = []
+    if follower.hold:
+        notes.append("--hold: the phone counts as held throughout" if args.hold else
+                     f"{dev.name} has no touch stream: the phone counts as held throughout")
+    else:
+        notes.append(f"the puppet is grabbed while the screen of {dev.name} is touched")
+    print(f"puppet: following {follower.attitude.name} of {dev.name} ({dev.kind} @ {dev.transport.url})"
+          + (f" for {args.duration:g} s" if args.duration else " until Ctrl-C"), file=sys.stderr)
+    stop = _stop_on_signals()
+    report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else _live_line)
+    if not follower.hold and not follower.touches:
+        notes.append(f"no touch from {dev.name}: the puppet stayed released (--hold: held throughout)")
+    if follower.skipped:
+        notes.append(f"{follower.skipped} attitude sample(s) without values or out of order skipped")
+    if follower.errors:
+        notes.append(f"{follower.errors} frame(s) failed (first: {follower.first_error})")
+    failed = [n for n, d in report.devices.items() if d["state"] == "failed" or not d.get("opens", 1)]
+    code = 0
+    for n in failed:
+        print(f"perfcap: error: device {n} failed: {report.devices[n]['last_error']}", file=sys.stderr)
+        code = EXIT_CHECK_FAILED
+    return f"{dev.name} ({follower.samples} attitude samples)", code, notes
+
+
+def _demo_puppet(reader: Any) -> None:
+    """The puppet driven by the simulated phone's recorded attitude; ``puppet.bvh`` beside the session.
+    A failure is one line: the demo goes on."""
+    from capture.puppet_run import PuppetRun, session_track
+    from retarget.bvh import write_bvh
+
+    path = os.path.join(os.path.dirname(os.path.abspath(reader.path)), "puppet.bvh")
+    try:
+        track = session_track(reader, "phone")
+        t0 = time.perf_counter()
+        run = PuppetRun(rate=60.0).run(track.resample(60.0))
+        ms = (time.perf_counter() - t0) * 1e3 / max(run.frames, 1)
+        write_bvh(path, run.clip("puppet"))
+    except Exception as exc:  # noqa: BLE001 - the demo goes on; the reason is said in one line
+        out(f"puppet: not driven from the phone ({type(exc).__name__}: {exc})")
+        return
+    held = "held throughout: the simulated phone sends no touch" if track.held_throughout else "grabbed by touch"
+    out(f"puppet: the phone's attitude ({held}) drove {run.frames} frames at 60 Hz ({ms:.2f} ms each); states "
+        + " -> ".join(run.states_visited()) + f"; BVH {path}")
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
@@ -1429,6 +1604,31 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
+    pp = sub.add_parser("puppet", help="drive a character from a phone (live, a recorded session or a trajectory"
+                        " CSV): BVH, VMC, state timeline",
+                        description="A character hangs on an invisible stick from the phone: it walks, runs,"
+                        " crouches and jumps as the phone moves, and falls limp when the motion fits no animation."
+                        " Frames are stepped at a fixed rate. Exit 0 when driven, 1 when nothing drove it or every"
+                        " VMC send failed, 2 for bad input.")
+    src = pp.add_mutually_exclusive_group(required=True)
+    src.add_argument("--phone", metavar="DEVICE", help=f"live from a device, as for record ({SPEC_FORM}); its"
+                     " <name>/attitude stream, touches to grab")
+    src.add_argument("--input", metavar="TRAJECTORY.csv", help="a scripted trajectory: columns t,px,py,pz,qw,qx,"
+                     "qy,qz,touch (s, m, the phone's unit quaternion in the Y-up world, 0/1)")
+    src.add_argument("--session", metavar="SESSION", help="a recorded session: the phone's attitude and touches")
+    pp.add_argument("--device", metavar="NAME", help="with --session: the phone (default: the only device with an"
+                    " attitude stream)")
+    pp.add_argument("-o", "--output", metavar="OUT.bvh", help="write the performance as BVH (fps = --rate)")
+    pp.add_argument("--vmc", metavar="HOST:PORT", help="send one VMC (OSC) bundle per frame over UDP")
+    pp.add_argument("--timeline", metavar="TIMELINE.json", help='write the state changes as [{"t": s, "state":'
+                    ' name}, ...]')
+    pp.add_argument("--rate", type=float, default=60.0, metavar="HZ", help="frame rate (default 60)")
+    pp.add_argument("--duration", type=float, metavar="SECONDS", help="with --phone: stop after this long"
+                    " (default: Ctrl-C)")
+    pp.add_argument("--hold", action="store_true", help="the phone counts as held throughout (touches ignored)")
+    pp.add_argument("-q", "--quiet", action="store_true", help="no live status lines")
+    pp.set_defaults(func=cmd_puppet)
+
     cy = sub.add_parser("cycle", help="one clean closed loop from a take of several performed loops",
                         description="Extract one clean closed loop from a take in which a motion was performed"
                         " several times. Exit 0 with the cycle, 1 when the input holds no cycle (no motion, or"
@@ -1485,7 +1685,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="perfcap: %(levelname)s: %(message)s", stream=sys.stderr)
-    if args.command in ("record", "demo", "serve") or args.command == "replay" and not args.fast:
+    if args.command in ("record", "demo", "serve") or args.command == "puppet" and args.phone or args.command == "replay" and not args.fast:
         # Live work: a shorter interpreter switch interval lets reader and delivery threads wake
         # within ~0.5 ms while another thread is busy encoding (the default 5 ms would dominate the
         # latency tail). Offline work keeps the default, which is faster for it.

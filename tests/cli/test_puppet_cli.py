@@ -1,0 +1,297 @@
+"""``perfcap puppet``: a scripted trajectory CSV, a recorded phone session or a live device (a recorded
+phone replayed through its codec) in; a BVH that reads back, the state timeline JSON, VMC bundles caught by
+a real UDP receiver, and a summary out. Bad input is one line and exit 2, never a traceback. And the demo's
+puppet step, on a recorded simulated page phone."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capture.cli import _demo_puppet, main
+from capture.pipeline import Capture
+from capture.sample import Chunk, Direction
+from capture.session import SessionReader
+from devices.codecs.phone_json import PageCodec
+from devices.transports.network import drop_hub, hub
+from retarget.bvh import read_bvh
+from retarget.skeleton import humanoid
+from retarget.vmc import decode_frame
+from sim_devices.phone_sim import page_hello, page_messages
+
+HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
+
+
+def run(capsys, *argv):
+    try:
+        code = main(list(argv))
+    except SystemExit as exc:   # argparse's usage errors
+        code = exc.code
+    o = capsys.readouterr()
+    assert "Traceback" not in o.err and "Traceback" not in o.out
+    return code, o.out, o.err
+
+
+def one_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def walk_csv(path: Path, fs: float = 50.0) -> str:
+    """Released 0.5 s, held still 0.5 s, walking forward at 1.2 m/s for 3 s, released at 5 s, 6 s in all."""
+    rows = [HEADER]
+    for i in range(int(6 * fs) + 1):
+        t = i / fs
+        z = 0.0 if t < 1.0 else 1.2 * (min(t, 4.0) - 1.0)
+        rows.append(f"{t:.4f},0,1.3,{z:.5f},1,0,0,0,{1 if 0.5 <= t < 5.0 else 0}")
+    path.write_text("\n".join(rows) + "\n")
+    return str(path)
+
+
+def record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[float, float] | None = None) -> str:
+    """A session of the built-in phone page, simulated (waving motion; deviceorientation every third
+    event), through the real page codec, device, clock sync and recorder; ``touch``: a finger down over
+    that span of seconds."""
+    codec = PageCodec()
+    rows = []
+    if touch is not None:
+        times = np.arange(touch[0], touch[1] + 1e-9, 0.05)
+        rows = [(1500.0 + 1000.0 * t + 0.25, 0.0 if k == 0 else 2.0 if k == len(times) - 1 else 1.0, 4.0,
+                 200.0, 300.0, 0.0, 10.0, 10.0) for k, t in enumerate(times)]
+    datas = []
+    for m in page_messages(duration_s, seed=3, t0_ms=1500.0):
+        mine = tuple(r for r in rows if r[0] <= m.sent_ms)
+        rows = rows[len(mine):]
+        datas.append((codec.encode(m.frame._replace(touches=mine)), m.sent_ms))
+    name = "puppet-cli-" + uuid.uuid4().hex[:10]
+    box = hub(name).inbox("page/p1")
+    box.connect("test")
+    t0 = time.monotonic_ns()
+    box.put(Chunk(page_hello(), t0, Direction.RX))
+    for data, sent_ms in datas:
+        box.put(Chunk(data, t0 + int(sent_ms * 1e6) + 20_000_000, Direction.RX))
+
+    def finish_when_read() -> None:
+        deadline = time.monotonic() + 10.0
+        while len(box) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        time.sleep(0.05)
+        box.finish()
+
+    threading.Thread(target=finish_when_read, daemon=True).start()
+    try:
+        Capture([f"phone=phone@net://{name}/page/p1"], output=str(path), overwrite=True).run(30.0)
+    finally:
+        drop_hub(name)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def touched(tmp_path_factory) -> str:
+    return record_phone_session(tmp_path_factory.mktemp("s") / "touched.mcap", touch=(1.0, 2.0))
+
+
+@pytest.fixture(scope="module")
+def untouched(tmp_path_factory) -> str:
+    return record_phone_session(tmp_path_factory.mktemp("s") / "demo.mcap", duration_s=2.0)
+
+
+# -- trajectory -----------------------------------------------------------------------------------
+def test_trajectory_to_bvh_and_timeline(tmp_path, capsys):
+    csv_path = walk_csv(tmp_path / "walk.csv")
+    bvh, tl = tmp_path / "walk.bvh", tmp_path / "walk.json"
+    code, out, err = run(capsys, "puppet", "--input", csv_path, "-o", str(bvh), "--timeline", str(tl))
+    assert code == 0, err
+    assert out.splitlines()[0] == f"puppet: 361 frames at 60 Hz (6.00 s) from {csv_path}"
+    assert "states: RELEASED 1.50 s, LOCOMOTION 4.50 s (2 change(s))" in out
+    assert f"BVH written to {bvh} (361 frames at 60 fps, 30 joints)" in out
+    skeleton, clip = read_bvh(bvh)
+    assert clip.n_frames == 361 and skeleton.n_joints == humanoid().n_joints == 30
+    assert clip.fps == pytest.approx(60.0)
+    assert skeleton.names == humanoid().names
+    # the character walked forward about as far as the phone moved (3.6 m)
+    assert clip.root_pos[300, 2] - clip.root_pos[60, 2] == pytest.approx(3.6, abs=0.2)
+    timeline = json.loads(tl.read_text())
+    assert [e["state"] for e in timeline] == ["RELEASED", "LOCOMOTION", "RELEASED"]
+    assert [e["t"] for e in timeline] == pytest.approx([0.0, 0.5, 5.0], abs=1 / 60 + 1e-9)
+    assert all(set(e) == {"t", "state"} for e in timeline)
+
+
+def test_rate_sets_the_frames_and_the_bvh_fps(tmp_path, capsys):
+    csv_path = walk_csv(tmp_path / "walk.csv")
+    bvh = tmp_path / "walk30.bvh"
+    code, _out, err = run(capsys, "puppet", "--input", csv_path, "-o", str(bvh), "--rate", "30")
+    assert code == 0, err
+    _, clip = read_bvh(bvh)
+    assert clip.n_frames == 181 and clip.fps == pytest.approx(30.0)
+
+
+def test_vmc_to_a_real_udp_receiver(tmp_path, capsys):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.05)
+    got: list[bytes] = []
+    done = threading.Event()
+
+    def receive() -> None:
+        while not done.is_set():
+            try:
+                got.append(sock.recv(65536))
+            except TimeoutError:
+                continue
+
+    th = threading.Thread(target=receive, daemon=True)
+    th.start()
+    try:
+        port = sock.getsockname()[1]
+        code, out, err = run(capsys, "puppet", "--input", walk_csv(tmp_path / "walk.csv"), "--rate", "30",
+                             "--vmc", f"127.0.0.1:{port}")
+        deadline = time.monotonic() + 5.0
+        while len(got) < 181 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)
+    finally:
+        done.set()
+        th.join()
+        sock.close()
+    assert code == 0, err
+    assert f"VMC: 181 bundle(s) sent to 127.0.0.1:{port} over UDP" in out
+    frames = [decode_frame(d) for d in got]
+    assert len(frames) == 181
+    sk = humanoid()
+    names = [sk.unity_names[n] for n in sk.names if n in sk.unity_names]
+    assert all(list(f.bones) == names and f.ok == 1 for f in frames)
+    assert [f.t for f in frames] == pytest.approx(np.arange(181) / 30.0, abs=1e-5)
+
+
+def test_vmc_that_cannot_send_is_counted_and_reported_once(tmp_path, capsys):
+    code, out, err = run(capsys, "puppet", "--input", walk_csv(tmp_path / "walk.csv", fs=10.0), "--rate", "10",
+                         "--vmc", "255.255.255.255:39539")
+    assert code == 1
+    assert "VMC: 0 bundle(s) sent to 255.255.255.255:39539 over UDP, 61 send error(s) (first: " in out
+    assert one_line(err).startswith("perfcap: error: no VMC bundle could be sent to 255.255.255.255:39539")
+
+
+# -- sessions and live ------------------------------------------------------------------------------
+def test_session_with_touches(touched, tmp_path, capsys):
+    bvh, tl = tmp_path / "s.bvh", tmp_path / "s.json"
+    code, out, err = run(capsys, "puppet", "--session", touched, "-o", str(bvh), "--timeline", str(tl))
+    assert code == 0, err
+    first = out.splitlines()[0]
+    assert first.startswith("puppet: ") and first.endswith(f"from {touched} phone/attitude")
+    n = int(first.split()[1])
+    assert n == math.floor(float(first.split("(")[1].split(" s)")[0]) * 60 + 0.5) + 1
+    assert "note: orientation from phone/attitude (euler), no position: the phone is held at a fixed pivot" in out
+    _, clip = read_bvh(bvh)
+    assert clip.n_frames == n
+    timeline = json.loads(tl.read_text())
+    assert timeline[:2] == [{"t": 0.0, "state": "RELEASED"}, {"t": pytest.approx(1.0, abs=0.03), "state": "LOCOMOTION"}]
+
+
+def test_session_without_touches_is_held_throughout(untouched, capsys):
+    code, out, err = run(capsys, "puppet", "--session", untouched, "--device", "phone")
+    assert code == 0, err
+    assert "note: no touches recorded (phone/touch is empty): the phone counts as held throughout" in out
+    assert "states: LOCOMOTION" in out     # grabbed from the first frame
+
+
+def test_live_phone_replayed_matches_the_session(touched, tmp_path, capsys):
+    tl_live, tl_session = tmp_path / "live.json", tmp_path / "session.json"
+    code, out, err = run(capsys, "puppet", "--phone", f"replay://{touched}?device=phone&speed=0", "-q",
+                         "--timeline", str(tl_live), "-o", str(tmp_path / "live.bvh"))
+    assert code == 0, err
+    assert "note: the puppet is grabbed while the screen of phone is touched" in out
+    assert "following phone/attitude of phone" in err
+    code, out2, err = run(capsys, "puppet", "--session", touched, "--timeline", str(tl_session))
+    assert code == 0, err
+    assert out.splitlines()[0].split(" from ")[0] == out2.splitlines()[0].split(" from ")[0]   # frames, duration
+    live, recorded = json.loads(tl_live.read_text()), json.loads(tl_session.read_text())
+    assert [e["state"] for e in live] == [e["state"] for e in recorded]
+    assert [e["t"] for e in live] == pytest.approx([e["t"] for e in recorded], abs=1e-3)
+
+
+def test_live_device_without_attitude(capsys):
+    code, _, err = run(capsys, "puppet", "--phone", "wrist=synth://imu?realtime=false&duration=0.2")
+    assert code == 2
+    assert one_line(err) == ("perfcap: error: device wrist has no attitude stream (wrist/attitude) to drive the"
+                             " puppet; its streams: wrist/imu, wrist/euler, wrist/mag, wrist/quat")
+
+
+# -- bad input ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("content", "message"), [
+    ("t,px,py,pz,qw,qx,qy,qz\n0,0,1,0,1,0,0,0\n", ("line 1: the columns are t,px,py,pz,qw,qx,qy,qz; expected "
+                                                   "t,px,py,pz,qw,qx,qy,qz,touch")),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,zero,0,0\n", "line 3, column qy: 'zero' is not a number"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0\n", "line 3: 8 fields where the header has 9"),
+    (f"{HEADER}\n0,0,1,0,0,0,0,0,0\n", "line 2: the quaternion (qw,qx,qy,qz) is zero"),
+    (f"{HEADER}\n0,0,1,0,0.5,0,0,0,0\n", "line 2: the quaternion (qw,qx,qy,qz) has norm 0.5"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n1,0,1,0,1,0,0,0,0\n0.5,0,1,0,1,0,0,0,0\n", "line 4: time 0.5 s does not increase"),
+])
+def test_malformed_trajectories(tmp_path, capsys, content, message):
+    p = tmp_path / "bad.csv"
+    p.write_text(content)
+    code, out, err = run(capsys, "puppet", "--input", str(p), "-o", str(tmp_path / "x.bvh"))
+    assert code == 2 and out == ""
+    assert one_line(err).startswith(f"perfcap: error: {p} {message}")
+    assert not (tmp_path / "x.bvh").exists()
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--input", "{tmp}/missing.csv"], "{tmp}/missing.csv: no such file"),
+    (["--session", "{tmp}/missing.mcap"], "{tmp}/missing.mcap: no such file"),
+    (["--session", "{walk}"], "is not a session file (not MCAP)"),
+    (["--input", "{walk}", "--vmc", "localhost"], "--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not 'localhost'"),
+    (["--input", "{walk}", "--vmc", "127.0.0.1:99999"], "--vmc expects HOST:PORT"),
+    (["--input", "{walk}", "--vmc", "no-such-host.invalid:9"], "--vmc no-such-host.invalid:9: cannot resolve"),
+    (["--input", "{walk}", "--rate", "0"], "--rate must be a frame rate in Hz between 0 and 1000, not 0.0"),
+    (["--input", "{walk}", "--rate", "nan"], "--rate must be a frame rate"),
+    (["--input", "{walk}", "-o", "{tmp}/no/such/dir/x.bvh"], "the folder {tmp}/no/such/dir does not exist"),
+    (["--input", "{walk}", "--timeline", "{tmp}"], "--timeline {tmp} is a directory"),
+    (["--input", "{walk}", "--duration", "3"], "--duration is for --phone"),
+    (["--input", "{walk}", "--device", "phone"], "--device chooses the phone of a --session"),
+    (["--session", "{untouched}", "--device", "pen"], ("has no attitude stream of a device 'pen'; phones with one:"
+                                                      " phone")),
+    (["--phone", "nonsense"], "nonsense"),
+    (["--input", "{walk}", "--session", "{untouched}"], "not allowed with argument"),
+    ([], "one of the arguments --phone --input --session is required"),
+])
+def test_bad_arguments_are_one_line(tmp_path, capsys, untouched, argv, message):
+    walk = walk_csv(tmp_path / "walk.csv", fs=5.0)
+    fill = {"tmp": str(tmp_path), "walk": walk, "untouched": untouched}
+    code, out, err = run(capsys, "puppet", *[a.format(**fill) for a in argv])
+    assert code == 2 and out == ""
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith(("usage:", " "))]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("perfcap: error: ") and message.format(**fill) in lines[0]
+
+
+# -- the demo's step ------------------------------------------------------------------------------------
+def test_demo_puppet_writes_puppet_bvh_beside_the_session(untouched, capsys):
+    _demo_puppet(SessionReader(untouched))
+    line = one_line(capsys.readouterr().out)
+    bvh = os.path.join(os.path.dirname(untouched), "puppet.bvh")
+    assert line.startswith("puppet: the phone's attitude (held throughout: the simulated phone sends no touch) drove ")
+    assert line.endswith(f"; BVH {bvh}") and "states LOCOMOTION" in line
+    n = int(line.split(" drove ")[1].split()[0])
+    skeleton, clip = read_bvh(bvh)
+    assert clip.n_frames == n > 100 and skeleton.n_joints == 30
+
+
+def test_demo_puppet_failure_is_one_line(tmp_path, capsys):
+    path = tmp_path / "imu.mcap"
+    Capture(["wrist=synth://imu?rate=100&realtime=false&duration=0.3"], output=str(path)).run(None)
+    _demo_puppet(SessionReader(str(path)))
+    line = one_line(capsys.readouterr().out)
+    assert line.startswith("puppet: not driven from the phone (ConfigError: ") and "no attitude stream" in line
+    assert not (tmp_path / "puppet.bvh").exists()

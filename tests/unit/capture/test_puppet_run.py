@@ -1,0 +1,502 @@
+"""The puppet's wiring (``capture.puppet_run``): trajectory CSVs read and checked line by line, resampling to
+a fixed rate (linear positions, slerped orientations, touch as last set), phone attitude streams turned into
+perfcap's Y-up world, touches of several fingers, recorded phone sessions (the page protocol through the real
+codec, device, clock sync and recorder), the state timeline and time per state, VMC bundles caught by a real
+UDP receiver, send errors counted, and the live ``PuppetFollower`` fed from a real ``SampleBus`` giving the
+same frames as the offline path."""
+
+from __future__ import annotations
+
+import math
+import socket
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capture.bus import Overflow, SampleBus
+from capture.errors import ConfigError
+from capture.pipeline import Capture
+from capture.puppet_run import (
+    PhoneTrack,
+    PuppetFollower,
+    PuppetRun,
+    VmcSender,
+    attitude_quaternions,
+    parse_host_port,
+    read_trajectory,
+    session_track,
+    touch_changes,
+)
+from capture.sample import (
+    Chunk,
+    DeviceIdentity,
+    Direction,
+    Sample,
+    SampleBatch,
+    StreamInfo,
+)
+from capture.session import SessionReader
+from devices.codecs.phone_json import PageCodec
+from devices.transports.network import drop_hub, hub
+from retarget.puppet import PhoneInput, PuppetRetargeter
+from retarget.skeleton import quat_rotate
+from retarget.vmc import decode_frame
+from sim_devices.phone_sim import page_hello, page_messages
+
+HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
+
+
+# -- helpers ------------------------------------------------------------------------------------
+def record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[float, float] | None = None,
+                         seed: int = 3) -> Path:
+    """A perfcap session of the built-in phone page: simulated page messages (waving motion, attitude
+    every third event) through the real page codec, ``PhonePage``, clock sync and recorder. ``touch``:
+    one finger down from ``touch[0]`` to ``touch[1]`` seconds after the first event (moves every 50 ms)."""
+    msgs = page_messages(duration_s, seed=seed, t0_ms=1500.0)
+    codec = PageCodec()
+    rows = []
+    if touch is not None:
+        times = np.arange(touch[0], touch[1] + 1e-9, 0.05)
+        for k, tt in enumerate(times):
+            phase = 0.0 if k == 0 else (2.0 if k == len(times) - 1 else 1.0)
+            rows.append((1500.0 + 1000.0 * tt + 0.25, phase, 4.0, 200.0, 300.0, 0.0, 10.0, 10.0))
+    datas = []
+    for m in msgs:   # each touch goes out with the first message sent after it
+        mine = tuple(r for r in rows if r[0] <= m.sent_ms)
+        rows = rows[len(mine):]
+        datas.append((codec.encode(m.frame._replace(touches=mine)), m.sent_ms))
+    name = "puppet-test-" + uuid.uuid4().hex[:10]
+    box = hub(name).inbox("page/p1")
+    box.connect("test")
+    t0 = time.monotonic_ns()
+    box.put(Chunk(page_hello(), t0, Direction.RX))
+    for data, sent_ms in datas:
+        box.put(Chunk(data, t0 + int(sent_ms * 1e6) + 20_000_000, Direction.RX))
+
+    def finish_when_read() -> None:
+        deadline = time.monotonic() + 10.0
+        while len(box) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        time.sleep(0.05)
+        box.finish()
+
+    threading.Thread(target=finish_when_read, daemon=True).start()
+    try:
+        Capture([f"phone=phone@net://{name}/page/p1"], output=str(path), overwrite=True).run(30.0)
+    finally:
+        drop_hub(name)
+    return path
+
+
+@pytest.fixture(scope="module")
+def touched_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return record_phone_session(tmp_path_factory.mktemp("ph") / "touched.mcap", touch=(1.0, 2.0))
+
+
+@pytest.fixture(scope="module")
+def untouched_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return record_phone_session(tmp_path_factory.mktemp("ph") / "untouched.mcap", duration_s=2.0)
+
+
+@pytest.fixture(scope="module")
+def retargeter() -> PuppetRetargeter:
+    return PuppetRetargeter()
+
+
+def fresh(r: PuppetRetargeter) -> PuppetRetargeter:
+    r.reset()
+    return r
+
+
+def write_csv(tmp_path: Path, text: str, name: str = "traj.csv") -> str:
+    p = tmp_path / name
+    p.write_text(text)
+    return str(p)
+
+
+def walk_csv(fs: float = 50.0) -> str:
+    """Released 0.5 s, held still 0.5 s, walking forward at 1.2 m/s for 3 s, released at 5 s, 6 s in all."""
+    rows = [HEADER]
+    for i in range(int(6 * fs) + 1):
+        t = i / fs
+        z = 0.0 if t < 1.0 else 1.2 * (min(t, 4.0) - 1.0)
+        rows.append(f"{t:.4f},0,1.3,{z:.5f},1,0,0,0,{1 if 0.5 <= t < 5.0 else 0}")
+    return "\n".join(rows) + "\n"
+
+
+# -- trajectory CSV -----------------------------------------------------------------------------
+def test_trajectory_resampled_linear_positions_slerped_rotations_touch_as_last_set(tmp_path):
+    s = math.sqrt(0.5)
+    # columns in another order; a 90 degree turn about Y over one second; touch set at 0.51 s
+    text = ("touch,t,qw,qx,qy,qz,px,py,pz\n"
+            "# the phone turns while it moves\n"
+            f"0,0.0,1,0,0,0,0,1,0\n"
+            f"1,0.51,{math.cos(math.pi / 4 * 0.51):.12f},0,{math.sin(math.pi / 4 * 0.51):.12f},0,0.51,1,0\n"
+            "\n"
+            f"1,1.0,{s:.12f},0,{s:.12f},0,1,1,2\n")
+    tr = read_trajectory(write_csv(tmp_path, text))
+    assert tr.positions is not None and tr.t.tolist() == [0.0, 0.51, 1.0]
+    frames = tr.resample(60.0)
+    assert len(frames) == 61 and frames[0].t == 0.0 and frames[-1].t == pytest.approx(1.0)
+    half = frames[30]
+    assert half.t == pytest.approx(0.5)
+    # linear position: between 0.0 and 0.51 s, x goes 0 -> 0.51 and z stays 0
+    assert half.position == pytest.approx((0.5, 1.0, 0.0))
+    # slerp: half a 90 degree turn about Y is 45 degrees
+    assert half.quaternion == pytest.approx((math.cos(math.pi / 8), 0.0, math.sin(math.pi / 8), 0.0), abs=1e-9)
+    assert [f.touch for f in frames[:32]] == [False] * 31 + [True]   # 0.5 s still released, 0.5167 s held
+    assert frames[45].position == pytest.approx((0.51 + 0.49 * (0.75 - 0.51) / 0.49, 1.0, 2.0 * (0.75 - 0.51) / 0.49))
+
+
+def test_trajectory_without_positions_is_an_imu_only_phone(tmp_path):
+    tr = read_trajectory(write_csv(tmp_path, f"{HEADER}\n0,,,,1,0,0,0,1\n0.5,,,,1,0,0,0,1\n"))
+    assert tr.positions is None and any("pivot" in n for n in tr.notes)
+    assert all(f.position is None and f.touch for f in tr.resample(30.0))
+
+
+def test_trajectory_quaternions_within_tolerance_are_normalised(tmp_path):
+    tr = read_trajectory(write_csv(tmp_path, f"{HEADER}\n0,0,1,0,1.004,0,0,0,0\n1,0,1,0,0.9999,0.0001,0,0,0\n"))
+    assert np.linalg.norm(tr.quaternions, axis=1) == pytest.approx([1.0, 1.0])
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("", "is empty"),
+    ("t,px,py,pz,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n", "line 1: the columns are t,px,py,pz,qw,qx,qy,qz; expected"),
+    ("time,px,py,pz,qw,qx,qy,qz,touch\n0,0,0,0,1,0,0,0,0\n", "expected t,px,py,pz,qw,qx,qy,qz,touch"),
+    (f"{HEADER}\n", "a header and no samples"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,x,1,0,0,0,0\n", "line 3, column pz: 'x' is not a number"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n\n0.1,0,1,0,1,0,0,0\n", "line 4: 8 fields where the header has 9"),
+    (f"{HEADER}\n0,0,1,0,0,0,0,0,0\n", "line 2: the quaternion (qw,qx,qy,qz) is zero"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,1,0,0,0\n", "line 3: the quaternion (qw,qx,qy,qz) has norm 1.414"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n", "line 4: time 0.1 s does not increase"),
+    (f"{HEADER}\n0.2,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n", "line 3: time 0.1 s does not increase"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,2\n", "line 2, column touch: '2'; expected 0 or 1"),
+    (f"{HEADER}\n0,0,nan,0,1,0,0,0,0\n", "line 2, column py: 'nan' is not a finite number"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,,,,1,0,0,0,0\n", "line 3: px,py,pz must be given on every row"),
+])
+def test_bad_trajectories_are_one_line_config_errors(tmp_path, text, message):
+    path = write_csv(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        read_trajectory(path)
+    assert message in str(info.value) and "\n" not in str(info.value)
+    assert str(info.value).startswith(path)
+
+
+def test_missing_and_directory_inputs(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        read_trajectory(str(tmp_path / "nope.csv"))
+    with pytest.raises(ConfigError, match="is a directory"):
+        read_trajectory(str(tmp_path))
+    (tmp_path / "bin.csv").write_bytes(b"\xff\xfe\x00\x81t,px\n")
+    with pytest.raises(ConfigError, match="not a text CSV"):
+        read_trajectory(str(tmp_path / "bin.csv"))
+
+
+# -- attitude and touch --------------------------------------------------------------------------
+def stream(name: str, kind: str, channels: tuple[str, ...], units: tuple[str, ...]) -> StreamInfo:
+    return StreamInfo(name, kind, channels, units, None, DeviceIdentity("phone", "ph"))
+
+
+EULER = stream("ph/attitude", "euler", ("alpha", "beta", "gamma"), ("deg",) * 3)
+
+
+def axes(q: np.ndarray) -> np.ndarray:
+    """The phone's x, y, z axes in the world."""
+    return np.stack([quat_rotate(q, e) for e in np.eye(3)])
+
+
+def test_deviceorientation_angles_become_the_y_up_world():
+    q = attitude_quaternions(EULER, np.array([[0.0, 0.0, 0.0], [90.0, 0.0, 0.0], [0.0, 90.0, 0.0],
+                                              [0.0, 0.0, 90.0]]))
+    # flat on a table, top to the north: the screen faces up (+Y), the top points north (-Z), right is east (+X)
+    assert axes(q[0]) == pytest.approx(np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), abs=1e-12)
+    # alpha 90: turned left about the vertical, the top points west (-X)
+    assert axes(q[1])[1] == pytest.approx([-1, 0, 0], abs=1e-12)
+    assert q[1] == pytest.approx([0.5, -0.5, 0.5, 0.5], abs=1e-12)   # (-90 deg about X) * (90 deg about Z)
+    # beta 90: stood upright, the top points up and the screen faces south (+Z)
+    assert axes(q[2])[1:] == pytest.approx(np.array([[0, 1, 0], [0, 0, 1]]), abs=1e-12)
+    # gamma 90: tilted right about its own y axis, the screen faces east (+X)
+    assert axes(q[3])[2] == pytest.approx([1, 0, 0], abs=1e-12)
+
+
+def test_deviceorientation_matches_scipys_intrinsic_zxy():
+    from scipy.spatial.transform import Rotation
+
+    from capture.puppet_run import Z_UP_TO_Y_UP
+    from retarget.skeleton import quat_mul
+
+    ang = np.random.default_rng(1).uniform([0, -180, -90], [360, 180, 90], (300, 3))
+    ref = quat_mul(Z_UP_TO_Y_UP, Rotation.from_euler("ZXY", ang, degrees=True).as_quat()[:, [3, 0, 1, 2]])
+    got = attitude_quaternions(EULER, ang)
+    assert np.abs(np.abs(np.sum(got * ref, axis=1)) - 1.0).max() < 1e-12
+
+
+def test_radian_euler_quaternion_channels_by_name_and_missing_values():
+    rad = stream("ph/attitude", "euler", ("alpha", "beta", "gamma"), ("rad",) * 3)
+    assert attitude_quaternions(rad, np.array([[math.pi / 2, 0, 0]])) == pytest.approx(
+        attitude_quaternions(EULER, np.array([[90.0, 0, 0]])))
+    xyzw = stream("sl/attitude", "quat", ("x", "y", "z", "w"), ("1",) * 4)
+    wxyz = stream("sl/attitude", "quat", ("w", "x", "y", "z"), ("1",) * 4)
+    v = np.array([[0.1, 0.2, 0.3, 0.9]])
+    assert attitude_quaternions(xyzw, v) == pytest.approx(attitude_quaternions(wxyz, v[:, [3, 0, 1, 2]]))
+    got = attitude_quaternions(wxyz, np.array([[0.0, 0, 0, 0], [2.0, 0, 0, 0], [math.nan, 0, 0, 1]]))
+    assert np.isnan(got[0]).all() and np.isnan(got[2]).all()
+    assert got[1] == pytest.approx([math.sqrt(0.5), -math.sqrt(0.5), 0, 0])   # normalised, then the world turn
+    assert attitude_quaternions(EULER, np.array([[math.nan, 10.0, 0.0]])).shape == (1, 4)
+    with pytest.raises(ConfigError, match="is not an attitude"):
+        attitude_quaternions(stream("ph/imu", "imu", ("ax", "ay", "az"), ("m/s^2",) * 3), np.zeros((1, 3)))
+
+
+def test_touch_held_while_any_finger_is_down():
+    rows = np.array([[0, 1], [0, 2], [1, 2], [2, 1], [1, 2], [3, 2], [1, 5], [2, 5]], float)
+    t, held = touch_changes(np.arange(8) * 0.1, np.hstack([rows, np.zeros((8, 5))]))
+    assert held.tolist() == [True, True, True, True, True, False, True, False]   # a move counts as down
+    assert t.tolist() == pytest.approx(np.arange(8) * 0.1)
+
+
+def test_single_finger_touch_streams_have_no_id():
+    # SensorServer's touch view: (phase, x, y); a finger moving must not count as several fingers
+    rows = np.array([[0, 10, 10], [1, 20, 25], [1, 30, 40], [2, 30, 40], [0, 5, 5], [2, 5, 6]], float)
+    _, held = touch_changes(np.arange(6.0), rows, ("phase", "x", "y"))
+    assert held.tolist() == [True, True, True, False, True, False]
+    with pytest.raises(ConfigError, match="needs a phase channel"):
+        touch_changes(np.arange(6.0), rows, ("x", "y", "z"))
+
+
+def test_follower_of_a_quaternion_phone_with_single_finger_touches(retargeter):
+    """A SensorServer-style phone (rotation vector quaternions, touches without ids) on a real bus."""
+    ident = DeviceIdentity("sensorserver", "ss")
+    att = StreamInfo("ss/attitude", "quat", ("w", "x", "y", "z"), ("1",) * 4, 50.0, ident)
+    touch = StreamInfo("ss/touch", "touch", ("phase", "x", "y"), ("1", "px", "px"), None, ident)
+    run = PuppetRun(fresh(retargeter), rate=50.0)
+    follower = PuppetFollower.for_device("ss", [att, touch], run)
+    assert not follower.hold
+    bus = SampleBus()
+    bus.subscribe(follower, policy=Overflow.NEVER_DROP)
+    t0 = 5 * 10**9
+    for k in range(101):   # 2 s at 50 Hz, turning slowly about the vertical (Z up in the phone's world)
+        a = 0.2 * k / 100
+        if k in (25, 30, 35, 75):   # down at 0.5 s, moves, up at 1.5 s (just before that attitude sample)
+            phase = {25: 0.0, 30: 1.0, 35: 1.0, 75: 2.0}[k]
+            bus.publish(Sample("ss/touch", k, 0, None, t0 + k * 20_000_000 + 1_000, (phase, 100.0 + k, 200.0)))
+        bus.publish(Sample("ss/attitude", k, 0, None, t0 + k * 20_000_000 + 3_000, (math.cos(a), 0.0, 0.0, math.sin(a))))
+    bus.close()
+    assert run.frames == 101 and follower.touches == 4 and follower.errors == 0
+    assert run.timeline() == [{"t": 0.0, "state": "RELEASED"}, {"t": 0.5, "state": "LOCOMOTION"},
+                              {"t": 1.5, "state": "RELEASED"}]
+
+
+# -- sessions -------------------------------------------------------------------------------------
+def test_session_track_from_a_recorded_page_phone(touched_session):
+    reader = SessionReader(str(touched_session))
+    tr = session_track(reader)
+    assert tr.positions is None and not tr.held_throughout
+    assert tr.t[0] == 0.0 and np.all(np.diff(tr.t) > 0) and 2.8 < tr.duration < 3.0
+    assert len(tr.t) == len(reader.samples("phone/attitude").t_bus_ns)   # ~20 Hz deviceorientation
+    assert np.linalg.norm(tr.quaternions, axis=1) == pytest.approx(1.0)
+    assert tr.touch.tolist() == [True] * 20 + [False]
+    assert tr.touch_t[0] == pytest.approx(1.0, abs=0.03) and tr.touch_t[-1] == pytest.approx(2.0, abs=0.03)
+    assert session_track(reader, "phone").t.tolist() == tr.t.tolist()
+
+
+def test_session_without_touches_is_held_throughout(untouched_session):
+    tr = session_track(SessionReader(str(untouched_session)))
+    assert tr.held_throughout and any("held throughout" in n for n in tr.notes)
+    assert all(f.touch for f in tr.resample(60.0))
+
+
+def test_session_errors(untouched_session, tmp_path):
+    reader = SessionReader(str(untouched_session))
+    with pytest.raises(ConfigError, match=r"no attitude stream of a device 'pen'; phones with one: phone"):
+        session_track(reader, "pen")
+    imu = tmp_path / "imu.mcap"
+    Capture(["wrist=synth://imu?rate=100&realtime=false&duration=0.5"], output=str(imu)).run(None)
+    with pytest.raises(ConfigError, match=r"holds no phone attitude stream .*wrist/imu \(imu\)"):
+        session_track(SessionReader(str(imu)))
+
+
+# -- the run: timeline, clip, VMC -----------------------------------------------------------------
+def test_hold_still_walk_release_timeline_and_time_per_state(tmp_path, retargeter):
+    run = PuppetRun(fresh(retargeter), rate=60.0).run(read_trajectory(write_csv(tmp_path, walk_csv())).resample(60))
+    assert [e["state"] for e in run.timeline()] == ["RELEASED", "LOCOMOTION", "RELEASED"]
+    assert [e["t"] for e in run.timeline()] == pytest.approx([0.0, 0.5, 5.0], abs=1 / 60 + 1e-9)
+    times = run.state_times()
+    assert list(times) == ["RELEASED", "LOCOMOTION"] and sum(times.values()) == pytest.approx(run.duration)
+    assert times["LOCOMOTION"] == pytest.approx(4.5, abs=0.02) and run.duration == pytest.approx(6.0)
+    clip = run.clip("walk")
+    assert clip.fps == 60.0 and clip.n_frames == run.frames == 361
+    assert clip.rotations.shape == (361, retargeter.skeleton.n_joints, 4)
+    # the character walked: its root moved forward about as far as the phone (3.6 m), then stopped
+    assert clip.root_pos[300, 2] - clip.root_pos[60, 2] == pytest.approx(3.6, abs=0.2)
+    assert clip.root_pos[-1, 2] == pytest.approx(clip.root_pos[300, 2], abs=0.2)
+
+
+def test_first_frame_changes_are_the_first_entry_and_instant_changes_are_kept(retargeter):
+    run = PuppetRun(fresh(retargeter), rate=10.0)
+    run.step(PhoneInput(0.0, (1.0, 0.0, 0.0, 0.0), True, (0.0, 1.3, 0.0)))
+    assert run.timeline() == [{"t": 0.0, "state": "LOCOMOTION"}]
+    run._change(0.5, "AIRBORNE")
+    run._change(0.5, "RAGDOLL")
+    assert [e["state"] for e in run.timeline()] == ["LOCOMOTION", "AIRBORNE", "RAGDOLL"]
+    with pytest.raises(ValueError, match="no frames"):
+        PuppetRun(fresh(retargeter)).clip()
+
+
+def test_bad_rates():
+    for rate in (0.0, -1.0, math.nan, math.inf, 5000.0):
+        with pytest.raises(ConfigError, match="--rate"):
+            PhoneTrack("x", np.zeros(1), np.array([[1.0, 0, 0, 0]])).resample(rate)
+
+
+class Receiver:
+    """A VMC receiver: a UDP socket on loopback, read by its own thread as datagrams arrive."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.datagrams: list[bytes] = []
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.done.is_set():
+            try:
+                self.datagrams.append(self.sock.recv(65536))
+            except TimeoutError:
+                continue
+
+    def wait_for(self, n: int, timeout: float = 5.0) -> list[bytes]:
+        deadline = time.monotonic() + timeout
+        while len(self.datagrams) < n and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)   # nothing more should come
+        self.done.set()
+        self.thread.join()
+        self.sock.close()
+        return list(self.datagrams)
+
+
+@pytest.fixture
+def receiver():
+    r = Receiver()
+    yield r
+    if not r.done.is_set():
+        r.wait_for(0, 0.0)
+
+
+def test_vmc_bundles_reach_a_real_udp_receiver(tmp_path, retargeter, receiver):
+    vmc = VmcSender(f"127.0.0.1:{receiver.port}", retargeter.skeleton)
+    track = read_trajectory(write_csv(tmp_path, walk_csv(25.0)))
+    run = PuppetRun(fresh(retargeter), rate=30.0, vmc=vmc, keep_frames=False)
+    frames = []
+    for inp in track.resample(30.0):
+        frames.append(run.step(inp))
+    vmc.close()
+    got = [decode_frame(d) for d in receiver.wait_for(len(frames))]
+    assert len(got) == len(frames) == run.frames == vmc.sent and vmc.errors == 0
+    sk = retargeter.skeleton
+    names = [sk.unity_names[n] for n in sk.names if n in sk.unity_names]
+    assert all(list(g.bones) == names for g in got)
+    assert [g.t for g in got] == pytest.approx([f.t for f in frames], abs=1e-5)
+    k = 100   # 3.3 s: walking
+    f = frames[k]
+    # Unity axes: x mirrored, quaternions (x, -y, -z, w)
+    assert got[k].root[:3] == pytest.approx((-f.root_pos[0], f.root_pos[1], f.root_pos[2]), abs=1e-5)
+    w, x, y, z = f.rotations[sk.index("LeftUpperLeg")]
+    assert got[k].bones["LeftUpperLeg"][3:] == pytest.approx((x, -y, -z, w), abs=1e-6)
+    assert got[k].bones["LeftUpperLeg"][:3] == pytest.approx(
+        tuple(sk.offsets[sk.index("LeftUpperLeg")] * (-1, 1, 1)), abs=1e-6)
+    with pytest.raises(ValueError, match="not kept"):
+        run.clip()
+
+
+def test_vmc_send_errors_are_counted_not_raised(retargeter):
+    vmc = VmcSender("255.255.255.255:39539", retargeter.skeleton)   # broadcast without SO_BROADCAST: refused
+    run = PuppetRun(fresh(retargeter), rate=10.0, vmc=vmc)
+    for k in range(5):
+        run.step(PhoneInput(k / 10, (1.0, 0.0, 0.0, 0.0), False, None))
+    vmc.close()
+    assert (vmc.sent, vmc.errors, run.frames) == (0, 5, 5)
+    assert vmc.first_error is not None and "\n" not in vmc.first_error
+
+
+@pytest.mark.parametrize(("text", "want"), [("127.0.0.1:39539", ("127.0.0.1", 39539)),
+                                            ("[::1]:9000", ("::1", 9000)), ("localhost:1", ("localhost", 1))])
+def test_host_port(text, want):
+    assert parse_host_port(text) == want
+
+
+@pytest.mark.parametrize("text", ["nohost", ":123", "host:", "host:0", "host:70000", "::1:9000", "host:abc", ""])
+def test_bad_host_port(text, retargeter):
+    with pytest.raises(ConfigError, match="--vmc expects HOST:PORT"):
+        VmcSender(text, retargeter.skeleton)
+
+
+def test_unresolvable_vmc_host(retargeter):
+    with pytest.raises(ConfigError, match="cannot resolve 'no-such-host.invalid'"):
+        VmcSender("no-such-host.invalid:9000", retargeter.skeleton)
+
+
+# -- live: the follower on a real bus --------------------------------------------------------------
+def publish_session(bus: SampleBus, reader: SessionReader, names: list[str], batch: int = 4) -> None:
+    """Publish a session's samples in bus-time order, a few at a time, as a device reader would."""
+    rows = []
+    for name in names:
+        b = reader.samples(name)
+        rows += [(int(t), name, k) for k, t in enumerate(b.t_bus_ns.tolist())]
+    rows.sort()
+    batches = {name: reader.samples(name) for name in names}
+    for i in range(0, len(rows), batch):
+        for _, name, k in rows[i:i + batch]:
+            b = batches[name]
+            bus.publish(SampleBatch(name, b.seq[k:k + 1], b.t_host_ns[k:k + 1], b.t_device_ns[k:k + 1],
+                                    b.t_bus_ns[k:k + 1], b.values[k:k + 1]))
+
+
+def test_follower_on_a_sample_bus_gives_the_offline_frames(touched_session, retargeter):
+    reader = SessionReader(str(touched_session))
+    offline = PuppetRun(fresh(retargeter), rate=60.0).run(session_track(reader).resample(60.0))
+    off_clip, off_timeline = offline.clip(), offline.timeline()
+
+    live_retargeter = PuppetRetargeter(skeleton=retargeter.skeleton, clips=retargeter.clips)
+    run = PuppetRun(live_retargeter, rate=60.0)
+    follower = PuppetFollower.for_device("phone", list(reader.streams.values()), run)
+    assert not follower.hold and follower.attitude.name == "phone/attitude"
+    bus = SampleBus()
+    bus.subscribe(follower, policy=Overflow.NEVER_DROP, name="puppet")
+    publish_session(bus, reader, ["phone/imu", "phone/attitude", "phone/touch"])
+    bus.close()
+    assert follower.errors == 0 and follower.touches == 21
+    assert follower.samples == len(reader.samples("phone/attitude").t_bus_ns)
+    assert run.frames == offline.frames
+    assert [e["state"] for e in run.timeline()] == [e["state"] for e in off_timeline]
+    assert [e["t"] for e in run.timeline()] == pytest.approx([e["t"] for e in off_timeline], abs=1e-6)
+    # released until the finger comes down at 1 s (what follows is the retargeter's: the waving phone)
+    assert off_timeline[:2] == [{"t": 0.0, "state": "RELEASED"}, {"t": pytest.approx(1.0, abs=0.03),
+                                                                 "state": "LOCOMOTION"}]
+    live_clip = run.clip()
+    assert np.abs(live_clip.root_pos - off_clip.root_pos).max() < 1e-6
+    assert np.abs(np.abs(np.sum(live_clip.rotations * off_clip.rotations, axis=-1)) - 1.0).max() < 1e-6
+
+
+def test_follower_without_touch_stream_holds_and_needs_an_attitude(untouched_session, retargeter):
+    reader = SessionReader(str(untouched_session))
+    streams = [s for s in reader.streams.values() if s.name != "phone/touch"]
+    run = PuppetRun(fresh(retargeter), rate=30.0)
+    follower = PuppetFollower.for_device("phone", streams, run)
+    assert follower.hold
+    bus = SampleBus()
+    bus.subscribe(follower, policy=Overflow.NEVER_DROP)
+    publish_session(bus, reader, ["phone/attitude"], batch=7)
+    bus.close()
+    assert run.timeline()[0]["state"] == "LOCOMOTION"   # grabbed from the first frame
+    assert run.frames == math.floor(session_track(reader).duration * 30 + 1e-9) + 1
+    with pytest.raises(ConfigError, match="has no attitude stream"):
+        PuppetFollower.for_device("phone", [s for s in streams if not s.name.endswith("attitude")], run)
