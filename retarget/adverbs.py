@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -126,15 +127,17 @@ def _kernel_matrix(points: Array, alpha: Array) -> Array:
     return np.asarray(bspline_kernel(d / alpha[None, :]))
 
 
-class _Interpolant:
-    """f(p) = basis(p) @ coefficients, with basis = [1, p_1..p_D, radial terms...]."""
+class _Interpolant(ABC):
+    """f(p) = basis(p) @ coefficients, with basis = [1, p_1..p_D, radial terms...]. Subclasses (``RBF``,
+    ``MultiResolutionRBF``) provide the basis."""
 
     dim: int
     coefficients: Array
     _scalar: bool
 
-    def basis(self, p: Array | Sequence[float] | float) -> Array:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def basis(self, p: Array | Sequence[float] | float) -> Array:
+        """The basis row(s) at p."""
 
     def __call__(self, p: Array | Sequence[float] | float) -> Array | float:
         """Evaluate at one point (returns (M,) or a float for scalar data) or at (Q, D) points.
@@ -155,8 +158,9 @@ class _Interpolant:
             return float(out[0]) if single else out
         return out[0] if single else out
 
-    def _basis_q(self, q: Array) -> Array:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _basis_q(self, q: Array) -> Array:
+        """The basis rows at the (Q, D) points q."""
 
 
 def _linear_fit(points: Array, values: Array) -> Array:

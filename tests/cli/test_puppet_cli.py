@@ -11,7 +11,6 @@ import os
 import socket
 import threading
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -19,14 +18,10 @@ import pytest
 
 from capture.cli import _demo_puppet, main
 from capture.pipeline import Capture
-from capture.sample import Chunk, Direction
 from capture.session import SessionReader
-from devices.codecs.phone_json import PageCodec
-from devices.transports.network import drop_hub, hub
 from retarget.bvh import read_bvh
 from retarget.skeleton import humanoid
 from retarget.vmc import decode_frame
-from sim_devices.phone_sim import page_hello, page_messages
 
 HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
 
@@ -58,52 +53,14 @@ def walk_csv(path: Path, fs: float = 50.0) -> str:
     return str(path)
 
 
-def record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[float, float] | None = None) -> str:
-    """A session of the built-in phone page, simulated (waving motion; deviceorientation every third
-    event), through the real page codec, device, clock sync and recorder; ``touch``: a finger down over
-    that span of seconds."""
-    codec = PageCodec()
-    rows = []
-    if touch is not None:
-        times = np.arange(touch[0], touch[1] + 1e-9, 0.05)
-        rows = [(1500.0 + 1000.0 * t + 0.25, 0.0 if k == 0 else 2.0 if k == len(times) - 1 else 1.0, 4.0,
-                 200.0, 300.0, 0.0, 10.0, 10.0) for k, t in enumerate(times)]
-    datas = []
-    for m in page_messages(duration_s, seed=3, t0_ms=1500.0):
-        mine = tuple(r for r in rows if r[0] <= m.sent_ms)
-        rows = rows[len(mine):]
-        datas.append((codec.encode(m.frame._replace(touches=mine)), m.sent_ms))
-    name = "puppet-cli-" + uuid.uuid4().hex[:10]
-    box = hub(name).inbox("page/p1")
-    box.connect("test")
-    t0 = time.monotonic_ns()
-    box.put(Chunk(page_hello(), t0, Direction.RX))
-    for data, sent_ms in datas:
-        box.put(Chunk(data, t0 + int(sent_ms * 1e6) + 20_000_000, Direction.RX))
-
-    def finish_when_read() -> None:
-        deadline = time.monotonic() + 10.0
-        while len(box) and time.monotonic() < deadline:
-            time.sleep(0.005)
-        time.sleep(0.05)
-        box.finish()
-
-    threading.Thread(target=finish_when_read, daemon=True).start()
-    try:
-        Capture([f"phone=phone@net://{name}/page/p1"], output=str(path), overwrite=True).run(30.0)
-    finally:
-        drop_hub(name)
-    return str(path)
+@pytest.fixture(scope="module")
+def touched(tmp_path_factory, record_phone_session) -> str:
+    return str(record_phone_session(tmp_path_factory.mktemp("s") / "touched.mcap", touch=(1.0, 2.0)))
 
 
 @pytest.fixture(scope="module")
-def touched(tmp_path_factory) -> str:
-    return record_phone_session(tmp_path_factory.mktemp("s") / "touched.mcap", touch=(1.0, 2.0))
-
-
-@pytest.fixture(scope="module")
-def untouched(tmp_path_factory) -> str:
-    return record_phone_session(tmp_path_factory.mktemp("s") / "demo.mcap", duration_s=2.0)
+def untouched(tmp_path_factory, record_phone_session) -> str:
+    return str(record_phone_session(tmp_path_factory.mktemp("s") / "demo.mcap", duration_s=2.0))
 
 
 # -- trajectory -----------------------------------------------------------------------------------

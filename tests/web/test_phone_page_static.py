@@ -16,9 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
-
-aiohttp = pytest.importorskip("aiohttp")
-from aiohttp import WSMsgType, web  # noqa: E402
+from aiohttp import WSMsgType, web
 
 if TYPE_CHECKING:
     from playwright.sync_api import Page

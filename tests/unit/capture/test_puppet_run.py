@@ -11,7 +11,6 @@ import math
 import socket
 import threading
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -32,73 +31,27 @@ from capture.puppet_run import (
     touch_changes,
 )
 from capture.sample import (
-    Chunk,
     DeviceIdentity,
-    Direction,
     Sample,
     SampleBatch,
     StreamInfo,
 )
 from capture.session import SessionReader
-from devices.codecs.phone_json import PageCodec
-from devices.transports.network import drop_hub, hub
 from retarget.puppet import PhoneInput, PuppetRetargeter
 from retarget.skeleton import quat_rotate
 from retarget.vmc import decode_frame
-from sim_devices.phone_sim import page_hello, page_messages
 
 HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
 
 
 # -- helpers ------------------------------------------------------------------------------------
-def record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[float, float] | None = None,
-                         seed: int = 3) -> Path:
-    """A perfcap session of the built-in phone page: simulated page messages (waving motion, attitude
-    every third event) through the real page codec, ``PhonePage``, clock sync and recorder. ``touch``:
-    one finger down from ``touch[0]`` to ``touch[1]`` seconds after the first event (moves every 50 ms)."""
-    msgs = page_messages(duration_s, seed=seed, t0_ms=1500.0)
-    codec = PageCodec()
-    rows = []
-    if touch is not None:
-        times = np.arange(touch[0], touch[1] + 1e-9, 0.05)
-        for k, tt in enumerate(times):
-            phase = 0.0 if k == 0 else (2.0 if k == len(times) - 1 else 1.0)
-            rows.append((1500.0 + 1000.0 * tt + 0.25, phase, 4.0, 200.0, 300.0, 0.0, 10.0, 10.0))
-    datas = []
-    for m in msgs:   # each touch goes out with the first message sent after it
-        mine = tuple(r for r in rows if r[0] <= m.sent_ms)
-        rows = rows[len(mine):]
-        datas.append((codec.encode(m.frame._replace(touches=mine)), m.sent_ms))
-    name = "puppet-test-" + uuid.uuid4().hex[:10]
-    box = hub(name).inbox("page/p1")
-    box.connect("test")
-    t0 = time.monotonic_ns()
-    box.put(Chunk(page_hello(), t0, Direction.RX))
-    for data, sent_ms in datas:
-        box.put(Chunk(data, t0 + int(sent_ms * 1e6) + 20_000_000, Direction.RX))
-
-    def finish_when_read() -> None:
-        deadline = time.monotonic() + 10.0
-        while len(box) and time.monotonic() < deadline:
-            time.sleep(0.005)
-        time.sleep(0.05)
-        box.finish()
-
-    threading.Thread(target=finish_when_read, daemon=True).start()
-    try:
-        Capture([f"phone=phone@net://{name}/page/p1"], output=str(path), overwrite=True).run(30.0)
-    finally:
-        drop_hub(name)
-    return path
-
-
 @pytest.fixture(scope="module")
-def touched_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def touched_session(tmp_path_factory: pytest.TempPathFactory, record_phone_session) -> Path:
     return record_phone_session(tmp_path_factory.mktemp("ph") / "touched.mcap", touch=(1.0, 2.0))
 
 
 @pytest.fixture(scope="module")
-def untouched_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def untouched_session(tmp_path_factory: pytest.TempPathFactory, record_phone_session) -> Path:
     return record_phone_session(tmp_path_factory.mktemp("ph") / "untouched.mcap", duration_s=2.0)
 
 
