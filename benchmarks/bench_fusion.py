@@ -53,14 +53,9 @@ from _common import check, header, pct, summary
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation, Slerp
 
-from capture.calibration import (
-    GyroBiasEstimator,
-    fit_magnetometer,
-    quat_conj,
-    quat_mul,
-    still_bias,
-)
+from capture.calibration import GyroBiasEstimator, fit_magnetometer, still_bias
 from capture.orientation import FILTERS, OrientationFilter, OrientationProcessor
+from capture.quat import quat_conj, quat_mul
 from capture.sample import NO_TIME, DeviceIdentity, Sample, SampleBatch, StreamInfo
 
 ROOT = Path(__file__).resolve().parent.parent

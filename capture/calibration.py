@@ -63,6 +63,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import erf
 
 from capture.errors import ConfigError
+from capture.quat import quat_conj, quat_mul, quat_rotate
 
 log = logging.getLogger(__name__)
 
@@ -80,35 +81,7 @@ _Z3: Vec3 = (0.0, 0.0, 0.0)
 
 
 # ------------------------------------------------------------------------------------------------
-# Quaternion helpers (Hamilton product, scalar first, arrays of shape (..., 4)).
-
-def quat_mul(p: ArrayLike, q: ArrayLike) -> np.ndarray:
-    """Hamilton product ``p * q`` (apply ``q`` first, then ``p``), broadcasting over leading axes."""
-    p = np.asarray(p, np.float64)
-    q = np.asarray(q, np.float64)
-    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([pw * qw - px * qx - py * qy - pz * qz,
-                     pw * qx + px * qw + py * qz - pz * qy,
-                     pw * qy - px * qz + py * qw + pz * qx,
-                     pw * qz + px * qy - py * qx + pz * qw], axis=-1)
-
-
-def quat_conj(q: ArrayLike) -> np.ndarray:
-    """Conjugate (the inverse of a unit quaternion)."""
-    q = np.array(q, np.float64)
-    q[..., 1:] *= -1.0
-    return q
-
-
-def quat_rotate(q: ArrayLike, v: ArrayLike) -> np.ndarray:
-    """Rotate vectors ``v`` (..., 3) by unit quaternions ``q`` (..., 4): ``q v q*``."""
-    q = np.asarray(q, np.float64)
-    v = np.asarray(v, np.float64)
-    qv = q[..., 1:]
-    t = 2.0 * np.cross(qv, v)
-    return v + q[..., :1] * t + np.cross(qv, t)
-
+# Headings about world z (quaternion maths is capture.quat).
 
 def quat_heading(q: ArrayLike) -> np.ndarray | float:
     """Heading of orientations ``q`` (sensor or body -> world, z up): the twist angle about world z,

@@ -79,13 +79,11 @@ from capture.calibration import (
     G0,
     GyroBiasEstimator,
     ImuCalibration,
-    quat_conj,
     quat_heading,
-    quat_mul,
-    quat_rotate,
     quat_yaw,
 )
 from capture.errors import ConfigError
+from capture.quat import quat_conj, quat_mul, quat_rotate
 from capture.sample import Sample, SampleBatch, StreamInfo
 
 log = logging.getLogger(__name__)

@@ -42,9 +42,10 @@ import numpy as np
 
 from capture.bus import Subscriber
 from capture.errors import ConfigError
+from capture.quat import quat_mul, quat_slerp
 from capture.sample import Sample, SampleBatch, StreamInfo
 from retarget.puppet import PhoneInput, PuppetFrame, PuppetRetargeter
-from retarget.skeleton import Clip, Skeleton, quat_mul, quat_slerp
+from retarget.skeleton import Clip, Skeleton
 from retarget.vmc import encode_frame
 
 log = logging.getLogger(__name__)

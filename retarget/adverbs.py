@@ -32,18 +32,15 @@ from typing import Any
 import numpy as np
 from scipy import linalg
 
-from retarget.timeline import (
-    check_key_times,
-    qconj,
-    qexp,
-    qlog,
-    qmul,
-    qnormalize,
-    qslerp,
-    reorient,
-    split_heading,
-    verb_time,
+from capture.quat import (
+    quat_conj,
+    quat_exp,
+    quat_log,
+    quat_mul,
+    quat_normalize,
+    quat_slerp,
 )
+from retarget.timeline import check_key_times, reorient, split_heading, verb_time
 
 __all__ = [
     "RBF",
@@ -625,7 +622,7 @@ def _resample(times: Array, root_pos: Array, rotations: Array, T: Array) -> tupl
     i = np.clip(np.searchsorted(times, Tc, side="right") - 1, 0, times.size - 2)
     f = (Tc - times[i]) / (times[i + 1] - times[i])
     pos = (1.0 - f)[:, None] * root_pos[i] + f[:, None] * root_pos[i + 1]
-    rot = qslerp(rotations[i], rotations[i + 1], np.repeat(f[:, None], rotations.shape[1], axis=1))
+    rot = quat_slerp(rotations[i], rotations[i + 1], np.repeat(f[:, None], rotations.shape[1], axis=1))
     return pos, rot
 
 
@@ -668,7 +665,7 @@ class Example:
             raise ValueError(f"example {self.name!r}: last key-time {k[-1]} is past the last sample {tm[-1]}")
         object.__setattr__(self, "times", tm)
         object.__setattr__(self, "root_pos", pos)
-        object.__setattr__(self, "rotations", qnormalize(rot))
+        object.__setattr__(self, "rotations", quat_normalize(rot))
         object.__setattr__(self, "key_times", k)
 
     @classmethod
@@ -828,8 +825,8 @@ class Verb:
             rot_all.append(rot)
         rots = np.stack(rot_all)  # (n, S, J, 4)
         self.reference = self._references(rots)
-        rel = qmul(qconj(self.reference)[None, None], rots)
-        rv = self._unwrap(qlog(rel)).reshape(len(examples), s, 3 * nj)
+        rel = quat_mul(quat_conj(self.reference)[None, None], rots)
+        rv = self._unwrap(quat_log(rel)).reshape(len(examples), s, 3 * nj)
         disp = np.stack([p[-1] - p[0] for p in pos_all])  # (n, 3); start X = Z = 0
         disp[:, 1] = 0.0  # the height is absolute, only X and Z carry a trend
         turn = np.array([h[-1] - h[0] for h in head_all])
@@ -1133,7 +1130,7 @@ class Verb:
         vals = np.einsum("...i,...ic->...c", w, rows)
         dvals = np.einsum("...i,...ic->...c", dw, rows)
         nj3 = 3 * self.num_joints
-        rot = qmul(self.reference, qexp(vals[..., :nj3].reshape((*ta.shape, self.num_joints, 3))))
+        rot = quat_mul(self.reference, quat_exp(vals[..., :nj3].reshape((*ta.shape, self.num_joints, 3))))
         scale = self._dt_dT(b.key_times, tw)[..., None]
         pos = vals[..., nj3 : nj3 + 3] + tw[..., None] * b.disp
         vel = (dvals[..., nj3 : nj3 + 3] + b.disp) * scale

@@ -21,16 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from retarget.skeleton import (
-    Clip,
-    Skeleton,
-    humanoid,
+from capture.quat import (
     quat_conj,
     quat_from_axis_angle,
     quat_from_matrix,
     quat_mul,
     quat_rotate,
 )
+from retarget.skeleton import Clip, Skeleton, humanoid
 
 __all__ = ["CLIP_NAMES", "DEFAULT_FPS", "GAITS", "Gait", "default_clips"]
 

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from capture.quat import quat_mul, quat_slerp
 from retarget.adverbs import Example, Verb
 from retarget.clips import default_clips
 from retarget.machine import (
@@ -37,7 +38,7 @@ from retarget.machine import (
 )
 from retarget.mapping import AxisMap, ProbeTable, PuppetMapping
 from retarget.ragdoll import Ragdoll
-from retarget.skeleton import Clip, Skeleton, humanoid, quat_mul, quat_slerp
+from retarget.skeleton import Clip, Skeleton, humanoid
 from retarget.states import PuppetState
 from retarget.stick import MotionStick, pose_matrix
 from retarget.timeline import sigmoid_blend, yaw_quat

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from retarget.skeleton import quat_from_matrix
+from capture.quat import cross, quat_from_matrix, quat_mul
 
 
 @dataclass
@@ -201,27 +201,15 @@ class Ragdoll:
         local = world.copy()
         has = self.parents >= 0
         par = world[self.parents[has]]
-        local[has] = _qmul(par * np.array([1.0, -1.0, -1.0, -1.0]), world[has])
+        local[has] = quat_mul(par * np.array([1.0, -1.0, -1.0, -1.0]), world[has])
         return self.pos[0].copy(), local
-
-
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], axis=-1)
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
 
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     e1 = a / np.linalg.norm(a, axis=1, keepdims=True)
-    e3 = _cross(e1, b)
+    e3 = cross(e1, b)
     e3 = e3 / np.maximum(np.linalg.norm(e3, axis=1, keepdims=True), 1e-12)
-    e2 = _cross(e3, e1)
+    e2 = cross(e3, e1)
     return np.stack([e1, e2, e3], axis=2)          # columns
 
 
@@ -237,7 +225,7 @@ def _swing_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a = a / np.linalg.norm(a, axis=1, keepdims=True)
     b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
     c = np.einsum("ij,ij->i", a, b)
-    q = np.concatenate([(1.0 + c)[:, None], _cross(a, b)], axis=1)
+    q = np.concatenate([(1.0 + c)[:, None], cross(a, b)], axis=1)
     opposite = c < -1.0 + 1e-9
     if np.any(opposite):
         for k in np.flatnonzero(opposite):

@@ -1,7 +1,8 @@
 """Time and root bookkeeping for verbs and adverbs (Rose 1999, ch. 3): key-times and canonical time
 (eq 3.1/3.2), the lazy motion operators that only touch time or the root (affine, time-warp with a
 bisection inverse, excerpt, cyclification, concatenation), the sigmoid blend, root reorientation and
-repositioning (Alg 3.1/3.2) and the scalar-first quaternion helpers the blending modules share.
+repositioning (Alg 3.1/3.2) and headings about the character's up axis (quaternion maths is
+:mod:`capture.quat`).
 
 Conventions: seconds, metres, radians; Y is up; heading theta sends +Z to (sin theta, cos theta), so
 ``R_y(a)`` maps a horizontal displacement (dX, dZ) to (cos a dX + sin a dZ, -sin a dX + cos a dZ).
@@ -23,6 +24,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from capture.quat import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize
+
 __all__ = [
     "Affine",
     "Concatenation",
@@ -39,13 +42,6 @@ __all__ = [
     "find_cycle",
     "heading_of",
     "linear_blend",
-    "qconj",
-    "qexp",
-    "qlog",
-    "qmul",
-    "qnormalize",
-    "qrotate",
-    "qslerp",
     "reorient",
     "reposition",
     "sigmoid_blend",
@@ -202,140 +198,7 @@ def ease_in(t: float | Array) -> float | Array:
 
 
 # --------------------------------------------------------------------------------------------------
-# Quaternions (w, x, y, z), vectorised over leading axes
-
-
-def qnormalize(q: Array) -> Array:
-    """Unit quaternions.
-
-    Args:
-        q: (..., 4).
-
-    Returns:
-        q / |q|.
-    """
-    q = np.asarray(q, dtype=float)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def qconj(q: Array) -> Array:
-    """Conjugate (the inverse of a unit quaternion).
-
-    Args:
-        q: (..., 4).
-
-    Returns:
-        (w, -x, -y, -z).
-    """
-    q = np.asarray(q, dtype=float)
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def qmul(a: Array, b: Array) -> Array:
-    """Hamilton product a * b (apply b first, then a), broadcast over leading axes.
-
-    Args:
-        a: (..., 4).
-        b: (..., 4).
-
-    Returns:
-        (..., 4).
-    """
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def qrotate(q: Array, v: Array) -> Array:
-    """Rotate vectors by unit quaternions.
-
-    Args:
-        q: (..., 4).
-        v: (..., 3).
-
-    Returns:
-        (..., 3), q v q*.
-    """
-    q = np.asarray(q, dtype=float)
-    v = np.asarray(v, dtype=float)
-    w = q[..., :1]
-    u = q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def qexp(rotvec: Array) -> Array:
-    """Unit quaternion of a rotation vector (axis times angle).
-
-    Args:
-        rotvec: (..., 3) radians.
-
-    Returns:
-        (..., 4) with w >= 0 for angles up to pi.
-    """
-    v = np.asarray(rotvec, dtype=float)
-    ang = np.linalg.norm(v, axis=-1, keepdims=True)
-    half = 0.5 * ang
-    # sin(half)/ang, with its series near 0
-    small = ang < 1e-6
-    k = np.where(small, 0.5 - ang * ang / 48.0, np.sin(half) / np.where(small, 1.0, ang))
-    return np.concatenate([np.cos(half), k * v], axis=-1)
-
-
-def qlog(q: Array) -> Array:
-    """Rotation vector of unit quaternions, taken on the w >= 0 hemisphere (angle in [0, pi]).
-
-    Args:
-        q: (..., 4).
-
-    Returns:
-        (..., 3).
-    """
-    q = np.asarray(q, dtype=float)
-    q = np.where(q[..., :1] < 0.0, -q, q)
-    w = np.clip(q[..., :1], -1.0, 1.0)
-    u = q[..., 1:]
-    s = np.linalg.norm(u, axis=-1, keepdims=True)
-    ang = 2.0 * np.arctan2(s, w)
-    small = s < 1e-9
-    k = np.where(small, 2.0 / np.where(small, np.maximum(w, 1e-300), 1.0), ang / np.where(small, 1.0, s))
-    return k * u
-
-
-def qslerp(a: Array, b: Array, alpha: float | Array) -> Array:
-    """Spherical linear interpolation on the shorter arc, broadcast over leading axes.
-
-    Args:
-        a: (..., 4) unit quaternions at alpha = 0.
-        b: (..., 4) unit quaternions at alpha = 1.
-        alpha: weight of ``b``, scalar or broadcastable to (...,).
-
-    Returns:
-        (..., 4) unit quaternions.
-    """
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    al = np.asarray(alpha, dtype=float)[..., None]
-    d = np.sum(a * b, axis=-1, keepdims=True)
-    b = np.where(d < 0.0, -b, b)
-    d = np.abs(d)
-    theta = np.arccos(np.clip(d, -1.0, 1.0))
-    s = np.sin(theta)
-    near = s < 1e-9
-    safe = np.where(near, 1.0, s)
-    wa = np.where(near, 1.0 - al, np.sin((1.0 - al) * theta) / safe)
-    wb = np.where(near, al, np.sin(al * theta) / safe)
-    return qnormalize(wa * a + wb * b)
+# Headings about +Y (quaternions (w, x, y, z), vectorised over leading axes)
 
 
 def yaw_quat(angle: float | Array) -> Array:
@@ -379,7 +242,7 @@ def split_heading(q: Array) -> tuple[Array, Array]:
         (heading (...,), tilt (..., 4)).
     """
     h = np.asarray(heading_of(q), dtype=float)
-    tilt = qmul(yaw_quat(-h), q)
+    tilt = quat_mul(yaw_quat(-h), q)
     return h, tilt
 
 
@@ -840,9 +703,9 @@ def cyclify_rotations(rotations: Array) -> Array:
     q = np.asarray(rotations, dtype=float)
     if q.ndim < 2 or q.shape[-1] != 4 or q.shape[0] < 2:
         raise ValueError(f"rotations must be (F, ..., 4) with F >= 2, got {q.shape}")
-    r = qlog(qmul(q[-1], qconj(q[0])))
+    r = quat_log(quat_mul(q[-1], quat_conj(q[0])))
     ramp = (np.linspace(0.0, 1.0, q.shape[0]) - 0.5).reshape((-1,) + (1,) * (q.ndim - 1))
-    return qnormalize(qmul(qexp(-ramp * r), q))
+    return quat_normalize(quat_mul(quat_exp(-ramp * r), q))
 
 
 def find_cycle(

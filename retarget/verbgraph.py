@@ -26,8 +26,9 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from capture.errors import RetargetError
+from capture.quat import quat_mul, quat_slerp
 from retarget.adverbs import Verb, VerbFrame
-from retarget.timeline import qmul, qslerp, sigmoid_blend, yaw_quat
+from retarget.timeline import sigmoid_blend, yaw_quat
 
 __all__ = ["Actor", "ActorPose", "BlendedTransition", "Transition", "TransitionFrame", "VerbGraph"]
 
@@ -193,7 +194,7 @@ class BlendedTransition:
         xz, h = self.root(Tc)
         vxz = self._velocity(Tc)
         y = (1.0 - alpha) * fa.root_pos[..., 1] + alpha * fb.root_pos[..., 1]
-        rot = qslerp(fa.rotations, fb.rotations, alpha[..., None] * np.ones(fa.rotations.shape[:-1]))
+        rot = quat_slerp(fa.rotations, fb.rotations, alpha[..., None] * np.ones(fa.rotations.shape[:-1]))
         return TransitionFrame(
             root_pos=np.stack([xz[..., 0], y, xz[..., 1]], axis=-1),
             heading=h,
@@ -545,7 +546,7 @@ class VerbGraph:
         _, y, _h, rot, t = self._local(actor, np.array([T, T]))
         actor.height = float(y[-1])
         actor.rotations = rot.copy()
-        actor.rotations[0] = qmul(yaw_quat(actor.heading), rot[0])
+        actor.rotations[0] = quat_mul(yaw_quat(actor.heading), rot[0])
         actor.usage, actor.item_t = verb, t
         self.actors[name] = actor
         return actor
@@ -689,7 +690,7 @@ class VerbGraph:
         actor.heading += float(h[1] - h[0])
         actor.height = float(y[1])
         rotations = rot.copy()
-        rotations[0] = qmul(yaw_quat(actor.heading), rot[0])
+        rotations[0] = quat_mul(yaw_quat(actor.heading), rot[0])
         actor.rotations = rotations
         f = actor.front
         actor.usage = f if isinstance(f, str) else self.blended(actor, f).usage_source(t)

@@ -1,5 +1,5 @@
 """Architecture rules (STYLE.md R1): production code never imports sim_devices; the kernel imports
-nothing else from the project; cycles/retarget see only samples."""
+nothing else from the project; cycles/retarget see only samples (and the quaternion maths)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def test_production_code_never_imports_sim_devices():
 
 
 def test_kernel_imports_only_kernel():
-    kernel = {"capture.sample", "capture.clock", "capture.errors", "capture.clocksync"}
+    kernel = {"capture.sample", "capture.clock", "capture.errors", "capture.clocksync", "capture.quat"}
     for name in kernel:
         f = ROOT / (name.replace(".", "/") + ".py")
         mods = {m for m in imports(f) if m.split(".")[0] in PACKAGES}
@@ -45,7 +45,7 @@ def test_kernel_imports_only_kernel():
 def test_cycles_and_retarget_see_only_samples():
     for pkg in ("cycles", "retarget"):
         for f, mods in project_imports(pkg).items():
-            assert mods <= {"capture.sample", "capture.errors"} | {m for m in mods if m.startswith(pkg)}, f
+            assert mods <= {"capture.sample", "capture.errors", "capture.quat"} | {m for m in mods if m.startswith(pkg)}, f
 
 
 def test_only_clock_reads_the_os_clock():
@@ -58,3 +58,15 @@ def test_only_clock_reads_the_os_clock():
             text = f.read_text()
             for call in ("time.monotonic", "time.time(", "time.perf_counter", "datetime.now"):
                 assert call not in text, f"{rel} reads the OS clock ({call})"
+
+
+def test_quaternion_maths_lives_in_one_place():
+    """One concept, one place (STYLE.md): the Hamilton product is written only in capture/quat.py."""
+    for pkg in ("capture", "devices", "cycles", "retarget", "sim_devices"):
+        for f in (ROOT / pkg).rglob("*.py"):
+            rel = str(f.relative_to(ROOT))
+            if rel == "capture/quat.py":
+                continue
+            tree = ast.parse(f.read_text(), rel)
+            defs = {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}
+            assert not defs & {"quat_mul", "qmul", "_qmul", "quat_slerp", "qslerp", "quat_rotate"}, rel

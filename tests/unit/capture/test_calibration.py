@@ -21,13 +21,13 @@ from capture.calibration import (
     fit_magnetometer,
     mounting_from_gravity,
     quat_heading,
-    quat_rotate,
     still_bias,
     still_mask,
     still_poses,
     still_segments,
 )
 from capture.errors import ConfigError
+from capture.quat import quat_rotate
 
 D2R = math.pi / 180
 FS = 100.0

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from capture.calibration import G0, ImuCalibration, quat_conj, quat_heading, quat_mul
+from capture.calibration import G0, ImuCalibration, quat_heading
 from capture.errors import ConfigError
 from capture.orientation import (
     FILTERS,
@@ -24,6 +24,7 @@ from capture.orientation import (
     check_mag_stream,
     gravity_from_quaternion,
 )
+from capture.quat import quat_conj, quat_mul
 from capture.sample import NO_TIME, DeviceIdentity, Sample, SampleBatch, StreamInfo
 
 D2R = math.pi / 180

@@ -30,6 +30,7 @@ from capture.puppet_run import (
     session_track,
     touch_changes,
 )
+from capture.quat import quat_mul, quat_rotate
 from capture.sample import (
     DeviceIdentity,
     Sample,
@@ -38,7 +39,6 @@ from capture.sample import (
 )
 from capture.session import SessionReader
 from retarget.puppet import PhoneInput, PuppetRetargeter
-from retarget.skeleton import quat_rotate
 from retarget.vmc import decode_frame
 
 HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
@@ -180,7 +180,6 @@ def test_deviceorientation_matches_scipys_intrinsic_zxy():
     from scipy.spatial.transform import Rotation
 
     from capture.puppet_run import Z_UP_TO_Y_UP
-    from retarget.skeleton import quat_mul
 
     ang = np.random.default_rng(1).uniform([0, -180, -90], [360, 180, 90], (300, 3))
     ref = quat_mul(Z_UP_TO_Y_UP, Rotation.from_euler("ZXY", ang, degrees=True).as_quat()[:, [3, 0, 1, 2]])

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from capture.quat import quat_exp, quat_mul, quat_slerp
 from retarget.adverbs import (
     RBF,
     Example,
@@ -22,7 +23,7 @@ from retarget.adverbs import (
     improved_clustering,
     mrbf_storage,
 )
-from retarget.timeline import qexp, qmul, qslerp, split_heading, verb_time, yaw_quat
+from retarget.timeline import split_heading, verb_time, yaw_quat
 
 TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "traces" / "d_mocap_cyclic"
 
@@ -50,8 +51,8 @@ def walk_example(
     j = np.arange(1, joints)
     rv[:, 1:, 0] = (0.3 + 0.15 * speed + crouch) * np.sin(ph[:, None] + 0.3 * j)
     rv[:, 1:, 2] = 0.1 * np.cos(ph[:, None] + 0.2 * j)
-    rot = qexp(rv)
-    rot[:, 0] = qmul(yaw_quat(np.full(frames, h0)), qexp(np.stack([0.05 * np.sin(2 * ph), 0 * ph, 0 * ph], 1)))
+    rot = quat_exp(rv)
+    rot[:, 0] = quat_mul(yaw_quat(np.full(frames, h0)), quat_exp(np.stack([0.05 * np.sin(2 * ph), 0 * ph, 0 * ph], 1)))
     return Example(point=point, times=T, root_pos=pos, rotations=rot, key_times=[0.0, key_frac * period, period])
 
 
@@ -262,7 +263,7 @@ def test_verb_reproduces_examples() -> None:
         np.testing.assert_allclose(fr.root_pos, ref_pos - [ref_pos[0, 0], 0, ref_pos[0, 2]], atol=2e-3)
         i = np.clip(np.searchsorted(e.times, T, side="right") - 1, 0, e.times.size - 2)
         f = (T - e.times[i]) / (e.times[i + 1] - e.times[i])
-        ref_rot = qslerp(e.rotations[i], e.rotations[i + 1], np.repeat(f[:, None], 30, axis=1))
+        ref_rot = quat_slerp(e.rotations[i], e.rotations[i + 1], np.repeat(f[:, None], 30, axis=1))
         assert angle_between(fr.rotations[:, 1:], ref_rot[:, 1:]).max() < 5e-3  # B-spline fit vs slerp
         _, tilt = split_heading(ref_rot[:, 0])
         assert angle_between(fr.rotations[:, 0], tilt).max() < 5e-3

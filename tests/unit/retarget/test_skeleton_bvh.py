@@ -12,6 +12,10 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from capture.errors import TraceError
+from capture.quat import (
+    quat_from_axis_angle,
+    quat_to_matrix,
+)
 from retarget.bvh import (
     CMU_SCALE,
     END_SITE_SUFFIX,
@@ -30,14 +34,6 @@ from retarget.skeleton import (
     bezier_spine,
     guess_unity_names,
     humanoid,
-    quat_conj,
-    quat_from_axis_angle,
-    quat_from_matrix,
-    quat_mul,
-    quat_normalize,
-    quat_rotate,
-    quat_slerp,
-    quat_to_matrix,
 )
 
 TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "traces" / "d_mocap_cyclic"
@@ -77,56 +73,6 @@ def naive_fk(sk: Skeleton, root: np.ndarray, q: np.ndarray) -> tuple[np.ndarray,
 def same_rotation(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> bool:
     """Quaternions equal up to sign."""
     return bool(np.all(np.abs(np.abs(np.sum(a * b, axis=-1)) - 1.0) < tol))
-
-
-# ------------------------------------------------------------------------------------------ quaternions
-
-
-def test_quaternion_helpers_agree_with_scipy() -> None:
-    rng = np.random.default_rng(1)
-    a, b = random_quats(rng, (50,)), random_quats(rng, (50,))
-    ra, rb = (Rotation.from_quat(q[:, [1, 2, 3, 0]]) for q in (a, b))
-    ab = quat_mul(a, b)
-    assert same_rotation(ab, (ra * rb).as_quat()[:, [3, 0, 1, 2]])
-    v = rng.normal(size=(50, 3))
-    np.testing.assert_allclose(quat_rotate(a, v), ra.apply(v), atol=1e-12)
-    np.testing.assert_allclose(quat_to_matrix(a), ra.as_matrix(), atol=1e-12)
-    assert same_rotation(quat_from_matrix(ra.as_matrix()), a)
-    assert np.all(quat_from_matrix(ra.as_matrix())[:, 0] >= 0)
-    np.testing.assert_allclose(quat_mul(a, quat_conj(a)), np.tile([1.0, 0, 0, 0], (50, 1)), atol=1e-12)
-    # the many-quaternion path of quat_to_matrix (component-wise) matches the small one
-    big = random_quats(rng, (400,))
-    np.testing.assert_allclose(quat_to_matrix(big), Rotation.from_quat(big[:, [1, 2, 3, 0]]).as_matrix(),
-                               atol=1e-12)
-
-
-def test_quat_from_matrix_near_half_turns_and_identity() -> None:
-    for axis in np.eye(3):
-        for angle in (0.0, np.pi, np.pi - 1e-9, np.pi / 2):
-            m = Rotation.from_rotvec(axis * angle).as_matrix()
-            q = quat_from_matrix(m)
-            np.testing.assert_allclose(quat_to_matrix(q), m, atol=1e-12)
-
-
-def test_slerp_ends_midpoint_and_shorter_path() -> None:
-    a = np.array([1.0, 0, 0, 0])
-    b = quat_from_axis_angle([0, 1, 0], np.pi / 2)
-    np.testing.assert_allclose(quat_slerp(a, b, 0.0), a, atol=1e-12)
-    np.testing.assert_allclose(quat_slerp(a, b, 1.0), b, atol=1e-12)
-    np.testing.assert_allclose(quat_slerp(a, b, 0.5), quat_from_axis_angle([0, 1, 0], np.pi / 4), atol=1e-12)
-    # -b is the same rotation: slerp must still take the 45 degree way, not the long one
-    mid = quat_slerp(a, -b, 0.5)
-    assert same_rotation(mid, quat_from_axis_angle([0, 1, 0], np.pi / 4))
-    # nearly equal inputs do not divide by zero
-    c = quat_normalize(a + 1e-9)
-    assert np.all(np.isfinite(quat_slerp(a, c, 0.3)))
-
-
-def test_quat_normalize_rejects_zero() -> None:
-    with pytest.raises(ValueError, match="non-zero"):
-        quat_normalize(np.zeros(4))
-    with pytest.raises(ValueError, match="non-zero"):
-        quat_from_axis_angle([0.0, 0.0, 0.0], 1.0)
 
 
 # --------------------------------------------------------------------------------------------- humanoid

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from capture.quat import quat_exp, quat_log, quat_mul, quat_rotate, quat_slerp
 from retarget.timeline import (
     Affine,
     Concatenation,
@@ -22,11 +23,6 @@ from retarget.timeline import (
     ease_in,
     find_cycle,
     heading_of,
-    qexp,
-    qlog,
-    qmul,
-    qrotate,
-    qslerp,
     reorient,
     reposition,
     sigmoid_blend,
@@ -100,18 +96,18 @@ def test_reposition_rotates_by_plus_delta_heading() -> None:
     np.testing.assert_allclose(out[:, 1], 1.0)
     np.testing.assert_allclose(h, math.pi / 2)
     # and the heading convention: heading pi/2 sends +Z to +X
-    np.testing.assert_allclose(qrotate(yaw_quat(h[0]), [0.0, 0.0, 1.0]), [1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(quat_rotate(yaw_quat(h[0]), [0.0, 0.0, 1.0]), [1.0, 0.0, 0.0], atol=1e-12)
 
 
 def test_split_heading_round_trip() -> None:
     rng = np.random.default_rng(3)
     h = rng.uniform(-3.0, 3.0, 20)
-    tilt = qexp(rng.normal(scale=0.3, size=(20, 3)) * np.array([1.0, 0.0, 1.0]))
-    q = qmul(yaw_quat(h), tilt)
+    tilt = quat_exp(rng.normal(scale=0.3, size=(20, 3)) * np.array([1.0, 0.0, 1.0]))
+    q = quat_mul(yaw_quat(h), tilt)
     hh, tt = split_heading(q)
-    np.testing.assert_allclose(np.abs(np.sum(qmul(yaw_quat(hh), tt) * q, axis=-1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(quat_mul(yaw_quat(hh), tt) * q, axis=-1)), 1.0, atol=1e-12)
     np.testing.assert_allclose(heading_of(tt), 0.0, atol=1e-12)
-    np.testing.assert_allclose(qexp(qlog(q)) * np.sign(q[:, :1]), q, atol=1e-12)
+    np.testing.assert_allclose(quat_exp(quat_log(q)) * np.sign(q[:, :1]), q, atol=1e-12)
 
 
 # -- 3. affine ------------------------------------------------------------------------------------
@@ -198,7 +194,7 @@ def test_cyclify_any_input_closes_the_seam() -> None:
 def test_cyclify_rotations_closes_the_seam() -> None:
     rng = np.random.default_rng(5)
     rv = np.cumsum(rng.normal(scale=0.1, size=(60, 4, 3)), axis=0)
-    q = qexp(rv)
+    q = quat_exp(rv)
     c = cyclify_rotations(q)
     np.testing.assert_allclose(np.abs(np.sum(c[0] * c[-1], axis=-1)), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 1.0, atol=1e-12)
@@ -216,8 +212,8 @@ def test_find_cycle_and_cyclify_real_walk() -> None:
 
     _, clip = read_bvh(path, scale=CMU_SCALE)
     h, tilt = split_heading(clip.rotations[:, 0])
-    rel = qlog(clip.rotations[:, 1:])
-    vals = np.concatenate([clip.root_pos, np.unwrap(h)[:, None], qlog(tilt), rel.reshape(clip.n_frames, -1)], 1)
+    rel = quat_log(clip.rotations[:, 1:])
+    vals = np.concatenate([clip.root_pos, np.unwrap(h)[:, None], quat_log(tilt), rel.reshape(clip.n_frames, -1)], 1)
     m = SampledMotion(clip.times, vals)
     # a rough designer's cycle mark in the steady walk (the gait period here is a little over 1 s)
     rough = (3.0, 4.1)
@@ -268,8 +264,8 @@ def test_excerpt_key_times() -> None:
 
 def test_slerp_endpoints_and_unit_norm() -> None:
     rng = np.random.default_rng(6)
-    a = qexp(rng.normal(size=(10, 3)))
-    b = qexp(rng.normal(size=(10, 3)))
-    np.testing.assert_allclose(qslerp(a, b, 0.0), a, atol=1e-12)
-    np.testing.assert_allclose(np.abs(np.sum(qslerp(a, b, 1.0) * b, -1)), 1.0, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(qslerp(a, b, 0.3), axis=-1), 1.0, atol=1e-12)
+    a = quat_exp(rng.normal(size=(10, 3)))
+    b = quat_exp(rng.normal(size=(10, 3)))
+    np.testing.assert_allclose(quat_slerp(a, b, 0.0), a, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(quat_slerp(a, b, 1.0) * b, -1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(quat_slerp(a, b, 0.3), axis=-1), 1.0, atol=1e-12)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from capture.errors import RetargetError
+from capture.quat import quat_exp, quat_mul
 from retarget.adverbs import Example, Verb
-from retarget.timeline import qexp, qmul, sigmoid_blend, yaw_quat
+from retarget.timeline import sigmoid_blend, yaw_quat
 from retarget.verbgraph import BlendedTransition, Transition, VerbGraph
 
 JOINTS = 6
@@ -37,8 +38,8 @@ def example(
     pos = np.stack([x, 0.9 + 0.02 * np.sin(4 * np.pi * T / period), z], axis=1)
     rv = np.zeros((frames, JOINTS, 3))
     rv[:, 1:, 0] = amp * np.sin(2 * np.pi * T[:, None] / period + np.arange(1, JOINTS))
-    rot = qexp(rv)
-    rot[:, 0] = qmul(yaw_quat(h), qexp(np.stack([0.03 * np.sin(2 * np.pi * T / period), 0 * T, 0 * T], 1)))
+    rot = quat_exp(rv)
+    rot[:, 0] = quat_mul(yaw_quat(h), quat_exp(np.stack([0.03 * np.sin(2 * np.pi * T / period), 0 * T, 0 * T], 1)))
     return Example((point,), T, pos, rot, [0.0, *(k * period for k in keys), period])
 
 
