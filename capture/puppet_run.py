@@ -46,7 +46,7 @@ from capture.quat import quat_mul, quat_slerp
 from capture.sample import Sample, SampleBatch, StreamInfo
 from retarget.puppet import PhoneInput, PuppetFrame, PuppetRetargeter
 from retarget.skeleton import Clip, Skeleton
-from retarget.vmc import encode_frame
+from retarget.vmc import VmcEncoder
 
 log = logging.getLogger(__name__)
 
@@ -399,7 +399,7 @@ def parse_host_port(text: str) -> tuple[str, int]:
 
 
 class VmcSender:
-    """One VMC bundle per frame over UDP to ``HOST:PORT`` (``retarget.vmc.encode_frame``): the skeleton's
+    """One VMC bundle per frame over UDP to ``HOST:PORT`` (``retarget.vmc.VmcEncoder``): the skeleton's
     joints that have a Unity name, local positions = the skeleton's offsets, local rotations = the
     frame's, root = the frame's root position and joint 0's rotation. Send errors are counted (and
     the first logged), never raised.
@@ -426,6 +426,7 @@ class VmcSender:
         self.index = [i for i, n in enumerate(skeleton.names) if n in unity]
         self.names = [unity[skeleton.names[i]] for i in self.index]
         self.local_pos = np.asarray(skeleton.offsets, np.float64)[self.index]
+        self.encoder = VmcEncoder(self.names)
         self.sent = 0
         self.errors = 0
         self.first_error: str | None = None
@@ -433,8 +434,8 @@ class VmcSender:
     def send(self, frame: PuppetFrame) -> bool:
         """Send one frame; False (counted) when it could not be encoded or sent."""
         try:
-            data = encode_frame(self.names, self.local_pos, frame.rotations[self.index], frame.root_pos,
-                                frame.rotations[0], frame.t)
+            data = self.encoder.encode(self.local_pos, frame.rotations[self.index], frame.root_pos,
+                                       frame.rotations[0], frame.t)
             self.sock.sendto(data, self.address)
         except (OSError, ValueError) as exc:
             self.errors += 1

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from capture.quat import cross, quat_from_matrix, quat_mul
+from capture.quat import cross, quat_from_matrix
 
 
 @dataclass
@@ -79,15 +79,21 @@ class Ragdoll:
         self._still = 0.0
         self._held = False
         self.children = [np.flatnonzero(self.parents == i) for i in range(j)]
-        # incidence matrices: a bone's (or limit's) correction moves its two joints in opposite ways
-        self._bone_incidence = np.zeros((j, self.bones.size))
-        self._bone_incidence[self.bones, np.arange(self.bones.size)] = -1.0
-        self._bone_incidence[self.parents[self.bones], np.arange(self.bones.size)] = 1.0
-        self._limit_incidence = np.zeros((j, self.limited.size))
-        self._limit_incidence[self.limited, np.arange(self.limited.size)] = 1.0
-        self._limit_incidence[self.gp[self.limited], np.arange(self.limited.size)] = -1.0
+        # one Jacobi pass over every constraint at once: rows of ``_diff`` give each constraint's vector
+        # (child minus parent for a bone, joint minus grandparent for a limit); ``_spread`` sends half of
+        # each correction to either end, bone corrections relaxed by the joint's bone count
+        nb, nl = self.bones.size, self.limited.size
+        self._diff = np.zeros((nb + nl, j))
+        self._diff[np.arange(nb), self.bones] = 1.0
+        self._diff[np.arange(nb), self.parents[self.bones]] = -1.0
+        self._diff[nb + np.arange(nl), self.limited] = 1.0
+        self._diff[nb + np.arange(nl), self.gp[self.limited]] = -1.0
         degree = np.bincount(np.concatenate([self.bones, self.parents[self.bones]]), minlength=j)
-        self._relax = (1.0 / np.maximum(degree, 1))[:, None]
+        relax = np.ones((j, nb + nl))
+        relax[:, :nb] = (1.0 / np.maximum(degree, 1))[:, None]
+        self._spread = -0.5 * self._diff.T * relax
+        self._target = np.concatenate([self.lengths[self.bones], self.min_dist])
+        self._slack = np.where(np.arange(nb + nl) >= nb, 0.0, np.inf)   # a limit only pushes apart
         self._single = np.array([i for i in range(j) if self.children[i].size == 1
                                  and self.lengths[self.children[i][0]] > 1e-9], dtype=np.int64)
         self._single_child = np.array([self.children[i][0] for i in self._single], dtype=np.int64)
@@ -99,7 +105,21 @@ class Ragdoll:
         self._multi_b = np.array([real[i][int(np.argmax([np.linalg.norm(np.cross(
             self.offsets[real[i][0]] / self.lengths[real[i][0]], self.offsets[c])) for c in real[i]]))]
             for i in multi], dtype=np.int64)
-        self._leaves = [i for i in range(j) if real[i].size == 0 and self.parents[i] >= 0]
+        leaves = [i for i in range(j) if real[i].size == 0 and self.parents[i] >= 0]
+        source = []
+        for i in leaves:
+            a = int(self.parents[i])
+            while a in leaves:
+                a = int(self.parents[a])
+            source.append(a)
+        self._leaves = np.array(leaves, dtype=np.int64)
+        self._leaf_source = np.array(source, dtype=np.int64)
+        self._identity = np.tile(np.eye(3), (j, 1, 1))
+        # the rest-pose halves of rotations(): unit rest bones and rest triads
+        rest = self.offsets[self._single_child]
+        self._single_rest = rest / np.maximum(np.linalg.norm(rest, axis=1, keepdims=True), 1e-12)
+        self._multi_rest = (_frames(self.offsets[self._multi_a], self.offsets[self._multi_b])
+                            if multi else np.zeros((0, 3, 3)))
 
     def start(self, positions: np.ndarray, velocities: np.ndarray | None = None, dt: float = 1 / 60) -> None:
         """Take over from an animated pose: world joint positions ``(J, 3)`` and their velocities."""
@@ -120,58 +140,40 @@ class Ragdoll:
         if not dt > 0:
             raise ValueError("dt must be positive")
         s = self.s
-        vel = (self.pos - self.prev) / dt
-        acc = np.zeros_like(self.pos)
-        acc[:, 1] -= s.gravity
+        disp = self.pos - self.prev                    # velocity * dt (position Verlet)
+        # damping everywhere, friction on the horizontal axes of joints touching the ground; gravity
+        keep = np.full_like(disp, 1.0 - s.damping * dt)
         on_ground = self.pos[:, 1] <= self.ground_y + s.radius + 1e-4
-        acc -= s.damping * vel
-        acc[on_ground, 0] -= s.friction * vel[on_ground, 0]
-        acc[on_ground, 2] -= s.friction * vel[on_ground, 2]
+        keep[on_ground, 0::2] -= s.friction * dt
+        new = self.pos + disp * keep
+        new[:, 1] -= s.gravity * dt * dt
         self._held = hold is not None
-        new = self.pos + vel * dt + acc * dt * dt
         self.prev = self.pos
         self.pos = new
         # the held joint is pulled towards the stick's end as a position constraint (unconditionally
         # stable for any dt, unlike a stiff explicit spring); it carries the whole body
         w = 1.0 - math.exp(-s.hold_rate * dt / s.iterations) if hold is not None else 0.0
+        floor = self.ground_y + s.radius
+        pos = self.pos
         for _ in range(s.iterations):
             if hold is not None:
                 i, target = hold
-                self.pos[i] += (np.asarray(target, np.float64) - self.pos[i]) * w
-            self._bones()
-            self._limits()
-            self._ground()
-        speed = np.max(np.linalg.norm(self.pos - self.prev, axis=1)) / dt
-        self._still = self._still + dt if speed < s.rest_speed else 0.0
+                pos[i] += (np.asarray(target, np.float64) - pos[i]) * w
+            self._constraints(pos)
+            np.maximum(pos[:, 1], floor, out=pos[:, 1])     # the ground
+        moved = pos - self.prev
+        still = float(np.einsum("ij,ij->i", moved, moved).max()) < (s.rest_speed * dt) ** 2
+        self._still = self._still + dt if still else 0.0
         return self.pos
 
-    def _bones(self) -> None:
-        # Jacobi: every bone's correction at once (equal masses: each end moves half the way), summed
-        # per joint; vectorised, so cheap enough to iterate more often than a sequential pass
-        c = self.bones
-        p = self.parents[c]
-        d = self.pos[c] - self.pos[p]
+    def _constraints(self, pos: np.ndarray) -> None:
+        # bones (rigid: any error corrected) and joint limits (only a joint nearer its grandparent than
+        # the limit allows is pushed out), every correction from the same positions, summed per joint
+        d = self._diff @ pos
         n = np.sqrt(np.einsum("ij,ij->i", d, d))
-        scale = np.where(n > 1e-9, (n - self.lengths[c]) / np.maximum(n, 1e-9), 0.0) * 0.5
-        self.pos += (self._bone_incidence @ (d * scale[:, None])) * self._relax
-
-    def _limits(self) -> None:
-        if self.limited.size == 0:
-            return
-        j = self.limited
-        g = self.gp[j]
-        d = self.pos[j] - self.pos[g]
-        n = np.sqrt(np.einsum("ij,ij->i", d, d))
-        short = (n < self.min_dist) & (n > 1e-9)
-        if not short.any():
-            return
-        amount = np.where(short, (self.min_dist - n) / np.maximum(n, 1e-9) * 0.5, 0.0)
-        self.pos += self._limit_incidence @ (d * amount[:, None])
-
-    def _ground(self) -> None:
-        floor = self.ground_y + self.s.radius
-        below = self.pos[:, 1] < floor
-        self.pos[below, 1] = floor
+        # |d| = n, so d * err / n stays bounded however short d is (two joints at one place: no push)
+        scale = np.minimum(n - self._target, self._slack) / np.maximum(n, 1e-12)
+        pos += self._spread @ (d * scale[:, None])
 
     @property
     def at_rest(self) -> bool:
@@ -183,25 +185,20 @@ class Ragdoll:
 
     def rotations(self) -> tuple[np.ndarray, np.ndarray]:
         """The pose as the skeleton's root position ``(3,)`` and local rotations ``(J, 4)`` (w, x, y, z)."""
-        jn = self.parents.size
-        world = np.zeros((jn, 4))
-        world[:, 0] = 1.0
+        world = self._identity.copy()                   # world rotation matrices (J, 3, 3)
         # joints with one child: the smallest rotation taking the rest bone onto the current one
         if self._single.size:
-            world[self._single] = _swing_many(self.offsets[self._single_child],
-                                              self.pos[self._single_child] - self.pos[self._single])
+            world[self._single] = _swing_matrices(self._single_rest,
+                                                  self.pos[self._single_child] - self.pos[self._single])
         # joints with several children (hips, chest, hands): the first child's bone exactly, the roll
         # about it from the second (the triad method), all at once
         if self._multi.size:
-            world[self._multi] = _triad(self.offsets[self._multi_a], self.offsets[self._multi_b],
-                                        self.pos[self._multi_a] - self.pos[self._multi],
+            world[self._multi] = _triad(self._multi_rest, self.pos[self._multi_a] - self.pos[self._multi],
                                         self.pos[self._multi_b] - self.pos[self._multi])
-        for i in self._leaves:
-            world[i] = world[self.parents[i]]       # leaves follow their parent (parents come first)
+        world[self._leaves] = world[self._leaf_source]  # leaves (no bone to aim) follow their parent
         local = world.copy()
-        has = self.parents >= 0
-        par = world[self.parents[has]]
-        local[has] = quat_mul(par * np.array([1.0, -1.0, -1.0, -1.0]), world[has])
+        local[self.bones] = np.einsum("nji,njk->nik", world[self.parents[self.bones]], world[self.bones])
+        local = quat_from_matrix(local)
         return self.pos[0].copy(), local
 
 
@@ -213,25 +210,34 @@ def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, e3], axis=2)          # columns
 
 
-def _triad(ra: np.ndarray, rb: np.ndarray, ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
-    """Quaternions (w, x, y, z) of the rotations taking rest directions (ra, rb) to current (ca, cb):
-    ``ra`` onto ``ca`` exactly, the plane of the two as close as possible."""
-    m = np.einsum("nij,nkj->nik", _frames(ca, cb), _frames(ra, rb))
-    return quat_from_matrix(m)
+def _triad(rest: np.ndarray, ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
+    """Rotation matrices of the rotations taking the rest triads ``rest`` (``_frames`` of the rest
+    directions) to the current directions (ca, cb): the first onto ``ca`` exactly, the plane of the two as
+    close as possible."""
+    return np.einsum("nij,nkj->nik", _frames(ca, cb), rest)
 
 
-def _swing_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Quaternions (w, x, y, z) of the smallest rotations taking the directions ``a`` onto ``b``."""
-    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+def _swing_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(n, 3, 3)`` of the smallest rotations taking the unit directions ``a`` onto ``b``:
+    ``c I + [v]x + v v^T / (1 + c)`` with ``v = a x b``, ``c = a . b`` (a half turn for opposite ones)."""
     b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    v = cross(a, b)
     c = np.einsum("ij,ij->i", a, b)
-    q = np.concatenate([(1.0 + c)[:, None], cross(a, b)], axis=1)
     opposite = c < -1.0 + 1e-9
-    if np.any(opposite):
-        for k in np.flatnonzero(opposite):
-            r = _swing(a[k], b[k]).as_quat()
-            q[k] = (r[3], r[0], r[1], r[2])
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    k = 1.0 / np.where(opposite, 1.0, 1.0 + c)
+    m = v[:, :, None] * (v * k[:, None])[:, None, :]
+    m[:, 0, 0] += c
+    m[:, 1, 1] += c
+    m[:, 2, 2] += c
+    m[:, 0, 1] -= v[:, 2]
+    m[:, 1, 0] += v[:, 2]
+    m[:, 0, 2] += v[:, 1]
+    m[:, 2, 0] -= v[:, 1]
+    m[:, 1, 2] -= v[:, 0]
+    m[:, 2, 1] += v[:, 0]
+    for i in np.flatnonzero(opposite):
+        m[i] = _swing(a[i], b[i]).as_matrix()
+    return m
 
 
 def _swing(a: np.ndarray, b: np.ndarray) -> Rotation:

@@ -37,8 +37,6 @@ __all__ = [
 _RIGID_TOL = 1e-6
 
 
-_EYE3 = np.eye(3)
-
 
 def _as_transform(x: object, name: str) -> np.ndarray:
     """Check that ``x`` is a 4x4 rigid transform and return it as a float array.
@@ -50,12 +48,17 @@ def _as_transform(x: object, name: str) -> np.ndarray:
     m = np.asarray(x, dtype=float)
     if m.shape != (4, 4):
         raise ValueError(f"{name} must be a 4x4 transform, got shape {m.shape}")
-    if not np.all(np.isfinite(m)):
+    # plain floats: for one 4x4 matrix this is several times cheaper than numpy's small-array calls
+    rows = m.tolist()
+    if not all(math.isfinite(v) for row in rows for v in row):
         raise ValueError(f"{name} has non-finite values")
-    if np.max(np.abs(m[3] - (0.0, 0.0, 0.0, 1.0))) > _RIGID_TOL:
+    if max(abs(v - e) for v, e in zip(rows[3], (0.0, 0.0, 0.0, 1.0), strict=True)) > _RIGID_TOL:
         raise ValueError(f"{name} must have the bottom row (0, 0, 0, 1), got {m[3]}")
-    r = m[:3, :3]
-    if np.max(np.abs(r.T @ r - _EYE3)) > 1e-5 or float(np.dot(np.cross(r[:, 0], r[:, 1]), r[:, 2])) < 0:
+    (a, b, c, _), (d, e, f, _), (g, h, i, _) = rows[:3]
+    gram = (a * a + d * d + g * g - 1.0, b * b + e * e + h * h - 1.0, c * c + f * f + i * i - 1.0,
+            a * b + d * e + g * h, a * c + d * f + g * i, b * c + e * f + h * i)
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if max(abs(v) for v in gram) > 1e-5 or det < 0:
         raise ValueError(f"{name} rotation block is not a proper rotation")
     return m
 
@@ -98,17 +101,19 @@ def pose_matrix(position: object, quaternion: object) -> np.ndarray:
     """
     q = np.asarray(quaternion, dtype=float)
     t = np.asarray(position, dtype=float)
-    if q.shape != (4,) or not np.all(np.isfinite(q)) or math.sqrt(float(q @ q)) < 1e-12:
+    qs = q.tolist() if q.shape == (4,) else []
+    norm = math.sqrt(sum(v * v for v in qs)) if qs else 0.0
+    if not (math.isfinite(norm) and norm >= 1e-12):
         raise ValueError(f"quaternion must be a finite non-zero (w, x, y, z), got {quaternion!r}")
-    if t.shape != (3,) or not np.all(np.isfinite(t)):
+    ts = t.tolist() if t.shape == (3,) else []
+    if not (ts and all(math.isfinite(v) for v in ts)):
         raise ValueError(f"position must be a finite 3-vector, got {position!r}")
-    w, x, y, z = q / math.sqrt(float(q @ q))
+    w, x, y, z = (v / norm for v in qs)
     # the rotation matrix of a unit quaternion: proper by construction, so no check is needed
-    m = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), t[0]],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), t[1]],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), t[2]],
-                  [0.0, 0.0, 0.0, 1.0]])
-    return m
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), ts[0]],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ts[1]],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), ts[2]],
+                     [0.0, 0.0, 0.0, 1.0]])
 
 
 def invert_transform(x: object) -> np.ndarray:

@@ -6,10 +6,14 @@ import socket
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pythonosc.osc_bundle import OscBundle
 from scipy.spatial.transform import Rotation
 
 from retarget.vmc import (
+    VmcEncoder,
+    build_frame,
     decode_frame,
     encode_frame,
     to_unity_position,
@@ -72,3 +76,32 @@ def test_bad_frames_raise_value_error() -> None:
         decode_frame(b"/VMC/Ext/OK\x00")
     with pytest.raises(ValueError):
         decode_frame(b"#bundle\x00" + b"\x00" * 8 + b"\x00\x00\x00\x40garbage")
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 40), t=st.floats(-1e6, 1e6),
+       name_len=st.integers(1, 13))
+def test_the_template_encoder_writes_the_bytes_python_osc_builds(seed: int, n: int, t: float, name_len: int) -> None:
+    # names of every padding length (OSC strings pad to 4 bytes), values of every size
+    rng = np.random.default_rng(seed)
+    _, pos, rot = random_frame(rng, n)
+    names = [f"B{i}".ljust(name_len + i % 4, "x") for i in range(n)]
+    pos *= 10.0 ** rng.integers(-3, 4)
+    root_pos, root_rot = rng.normal(size=3) * 100.0, rot[0]
+    enc = VmcEncoder(names)
+    assert enc.encode(pos, rot, root_pos, root_rot, t) == build_frame(names, pos, rot, root_pos, root_rot, t)
+    # the template is reused: a second frame is encoded from scratch, not patched over the first
+    pos2 = pos[::-1].copy()
+    assert enc.encode(pos2, rot, root_pos, root_rot, t + 1) == build_frame(names, pos2, rot, root_pos, root_rot,
+                                                                          t + 1)
+
+
+def test_the_encoder_refuses_bad_names_and_shapes() -> None:
+    with pytest.raises(ValueError, match="names"):
+        VmcEncoder(["Hips", ""])
+    enc = VmcEncoder(["Hips", "Spine"])
+    with pytest.raises(ValueError, match="2 bones"):
+        enc.encode(np.zeros((3, 3)), np.zeros((3, 4)), np.zeros(3), np.array([1.0, 0, 0, 0]), 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        enc.encode(np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros(3), np.array([1.0, 0, 0, 0]),
+                   float("inf"))
