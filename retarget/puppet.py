@@ -93,6 +93,11 @@ class PuppetConfig:
         follow_s: time constant with which the walking root closes its distance to the stick's end (it
             moves with the animation's own velocity, corrected this gently, so the feet do not slide).
         hold_joint: the joint the stick holds in the ragdoll.
+        turn_s: on the ground the character turns to face where the stick's end moves (the clips walk
+            forwards), and back to the stick's yaw when it stops, closing its heading error with this time
+            constant. For a phone without position (the fishing rod, whose yaw is spent sweeping the end
+            round the pivot) it keeps its heading when the end stops.
+        turn_speed: the end must move faster than this (m/s) for the character to face its travel.
         machine: state machine thresholds (its character height follows ``height``).
     """
 
@@ -103,6 +108,8 @@ class PuppetConfig:
     follow_s: float = 1.5
     num_cp: int = 64
     hold_joint: str = "Chest"
+    turn_s: float = 0.15
+    turn_speed: float = 0.3
     machine: MachineConfig | None = None
 
 
@@ -158,7 +165,8 @@ class PuppetRetargeter:
         self._fade_from: tuple[np.ndarray, np.ndarray] | None = None
         self._fade_at = 0.0
         self._state_at = 0.0
-        self._jump_start: np.ndarray | None = None
+        self._jump_offset = np.zeros(3)
+        self._get_up_base = np.zeros(3)
         self._prev_joints: np.ndarray | None = None
         self._touch = False
         self.machine = PuppetStateMachine(self.machine.config)
@@ -201,11 +209,16 @@ class PuppetRetargeter:
         else:
             end = self.position.copy()
             heading = self.heading
+        prev_end = end if self._last_target is None else self._last_target
         if self._last_target is not None and dt > 0:
             v = (end - self._last_target) / dt
             a = 1.0 - math.exp(-dt / 0.05)            # 50 ms smoothing of the finite difference
             self.velocity = self.velocity + a * (v - self.velocity)
         self._last_target = end
+        if inp.position is None:                       # the rod: the phone's yaw is spent sweeping
+            heading = self._facing(dt, self.heading)
+        elif grounded:
+            heading = self._facing(dt, heading)
 
         lift = max(0.0, float(end[1]) - self.stand_height)
         u_height = float(end[1]) / self.stand_height
@@ -216,7 +229,7 @@ class PuppetRetargeter:
         transitions = tuple(self.machine.step(ctx))
         new_state = self.machine.state
         if transitions:
-            self._on_transitions(transitions, t, end)
+            self._on_transitions(transitions, t, prev_end)
         root, rot, p_used, speedup = self._pose(new_state, t, dt, end, heading, blend)
         root, rot = self._crossfade(t, root, rot)
         self.position = root.copy()
@@ -227,7 +240,7 @@ class PuppetRetargeter:
         return PuppetFrame(t=t, state=new_state, root_pos=root, rotations=rot, transitions=transitions,
                            blend=p_used, speedup=speedup)
 
-    def _on_transitions(self, transitions: tuple[Transition, ...], t: float, end: np.ndarray) -> None:
+    def _on_transitions(self, transitions: tuple[Transition, ...], t: float, prev_end: np.ndarray) -> None:
         last = transitions[-1].to_state
         self._fade_from = (self._last_root.copy(), self._last_rot.copy())
         self._fade_at = t
@@ -238,10 +251,11 @@ class PuppetRetargeter:
             self.ragdoll.start(joints, vel)
             self._fade_from = None                      # physics takes over from the current pose
         elif last is PuppetState.AIRBORNE:
-            self._jump_start = end.copy()
+            # the jump follows the stick's end from wherever the character took off (no jump to the end)
+            self._jump_offset = np.array([self.position[0] - prev_end[0], 0.0, self.position[2] - prev_end[2]])
         elif last is PuppetState.GET_UP:
             hips = self.ragdoll.pos[0]
-            self.position = np.array([hips[0], 0.0, hips[2]])
+            self._get_up_base = np.array([hips[0], 0.0, hips[2]])
 
     def _pose(self, state: PuppetState, t: float, dt: float, end: np.ndarray, heading: float,
               blend: Any) -> tuple[np.ndarray, np.ndarray, tuple[float, float], float]:
@@ -262,16 +276,19 @@ class PuppetRetargeter:
                              self.position[2] + step[2] + k * err[2]])
             return root, rot, p, speedup
         if state in (PuppetState.JUMP_ANTICIPATION, PuppetState.LANDING, PuppetState.INTERACT):
+            # the squat carries on at the stick's ground speed (a running jump does not stop to crouch)
             p = (0.0, 0.0)
             pos, _, rot = self.verb.pose(p, self.phase, with_position=True)
             rot[0] = quat_mul(yaw, rot[0])
-            return np.array([end[0], float(pos[1]), end[2]]), rot, p, 1.0
+            glide = 0.0 if state is PuppetState.INTERACT else dt
+            return np.array([self.position[0] + self.velocity[0] * glide, float(pos[1]),
+                             self.position[2] + self.velocity[2] * glide]), rot, p, 1.0
         if state is PuppetState.AIRBORNE:
             clip = self.clips["mid_jump"]
             _, rot = clip.sample(min(t - self._state_at, clip.duration))
             rot = np.array(rot, np.float64)
             rot[0] = quat_mul(yaw, rot[0])
-            return end.copy(), rot, (0.0, 1.0), 1.0
+            return end + self._jump_offset, rot, (0.0, 1.0), 1.0
         if state is PuppetState.RAGDOLL:
             hold = (self.hold_index, end) if self.stick.held else None
             if dt > 0:
@@ -285,14 +302,25 @@ class PuppetRetargeter:
             rot[0] = quat_mul(yaw_quat(self.heading), rot[0])
             off = yaw_quat(self.heading)
             r = _rotate(off, np.asarray(root, np.float64) - np.asarray(clip.root_pos[0], np.float64))
-            base = np.array([self.position[0], 0.0, self.position[2]])
-            return base + r + np.array([0.0, float(clip.root_pos[0][1]), 0.0]), rot, (0.0, 1.0), 1.0
+            return self._get_up_base + r + np.array([0.0, float(clip.root_pos[0][1]), 0.0]), rot, (0.0, 1.0), 1.0
         # RELEASED: idle where it stands
         p = (0.0, 1.0)
         pos, _, rot = self.verb.pose(p, self.phase, with_position=True)
         self.phase = (self.phase + dt / self.verb.duration(p)) % 1.0
         rot[0] = quat_mul(yaw_quat(self.heading), rot[0])
         return np.array([self.position[0], float(pos[1]), self.position[2]]), rot, p, 1.0
+
+    def _facing(self, dt: float, still_heading: float) -> float:
+        """The grounded character's heading: it turns to face where the stick's end goes while that moves
+        faster than ``turn_speed`` (so it never walks backwards or sideways on forward-walking clips),
+        else to ``still_heading`` (the stick's yaw; for the rod, where it faces), in ``turn_s``."""
+        vx, vz = float(self.velocity[0]), float(self.velocity[2])
+        moving = math.hypot(vx, vz) >= self.config.turn_speed
+        goal = math.atan2(vx, vz) if moving else still_heading
+        if dt <= 0:
+            return self.heading if moving else still_heading
+        err = (goal - self.heading + math.pi) % (2 * math.pi) - math.pi
+        return self.heading + err * (1.0 - math.exp(-dt / self.config.turn_s))
 
     def _crossfade(self, t: float, root: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self._fade_from is None:
@@ -303,7 +331,11 @@ class PuppetRetargeter:
             return root, rot
         a = float(sigmoid_blend(max(0.0, u)))
         r0, q0 = self._fade_from
-        return r0 + a * (root - r0), quat_slerp(q0, rot, a)
+        # the pose and the root's height blend; the root's ground position is the new state's (which
+        # starts where the old one left it), so it neither stops nor rushes at the change
+        out = root.copy()
+        out[1] = r0[1] + a * (root[1] - r0[1])
+        return out, quat_slerp(q0, rot, a)
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -36,7 +36,6 @@ class RagdollSettings:
     iterations: int = 5           # constraint passes per step
     rest_speed: float = 0.08      # m/s: below this (every joint) for rest_time it is at rest
     rest_time: float = 0.3
-    lying_height: float = 0.5      # m: a body whose root (hips) is below this is down on the ground
 
 
 class Ragdoll:
@@ -177,11 +176,10 @@ class Ragdoll:
 
     @property
     def at_rest(self) -> bool:
-        """Still (every joint slower than ``rest_speed``) for ``rest_time``, touching the ground and down
-        (the root below ``lying_height``): a body hanging still from the stick is not at rest."""
+        """Still (every joint slower than ``rest_speed``) for ``rest_time`` and touching the ground: lying, or
+        hanging still from the stick with its feet down. A body hanging clear of the ground is not at rest."""
         return (self._still >= self.s.rest_time
-                and float(self.pos[:, 1].min()) <= self.ground_y + 2 * self.s.radius
-                and float(self.pos[0, 1]) <= self.ground_y + self.s.lying_height)
+                and float(self.pos[:, 1].min()) <= self.ground_y + 2 * self.s.radius)
 
     def rotations(self) -> tuple[np.ndarray, np.ndarray]:
         """The pose as the skeleton's root position ``(3,)`` and local rotations ``(J, 4)`` (w, x, y, z)."""

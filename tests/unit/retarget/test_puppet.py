@@ -75,8 +75,8 @@ def jump_path(rise_twice: bool = False, turn: float = 0.0, hover: bool = False):
             return (0, 1.3, 0), 0.0, True
         s = t - 1.0
         z = 1.0 * s
-        if hover and s > 0.35:      # stops in the air
-            return (0, 1.3 + 2.5 * 0.35, 0.35), 0.0, True
+        if hover and s > 0.35:      # stops in the air, where it was (0.27 m up, still rising)
+            return (0, 1.3 + 2.5 * 0.35 - 0.5 * 9.81 * 0.35 ** 2, 0.35), 0.0, True
         v0 = 2.5
         y = 1.3 + v0 * s - 0.5 * 9.81 * s * s
         if rise_twice and s > 0.35:
@@ -96,13 +96,15 @@ def test_a_clean_jump_lands(puppet: PuppetRetargeter) -> None:
     assert abs((t_air - t_anti) - 0.2) <= 1 / 60 + 1e-9       # the anticipation squat
 
 
-@pytest.mark.parametrize("kind", ["rise_twice", "turn", "hover"])
-def test_invalid_jumps_fall_limp(puppet: PuppetRetargeter, kind: str) -> None:
+@pytest.mark.parametrize(("kind", "reason"), [("rise_twice", "re_rise"), ("turn", "turn"), ("hover", "stop")])
+def test_invalid_jumps_fall_limp(puppet: PuppetRetargeter, kind: str, reason: str) -> None:
     path = jump_path(rise_twice=kind == "rise_twice", turn=45.0 if kind == "turn" else 0.0, hover=kind == "hover")
     fr = run(puppet, path, 2.5)
     tl = timeline(fr)
     assert S.AIRBORNE in tl and S.RAGDOLL in tl, tl
     assert tl.index(S.RAGDOLL) > tl.index(S.AIRBORNE)
+    limp = next(tr for f in fr for tr in f.transitions if tr.to_state is S.RAGDOLL)
+    assert limp.reason == reason
 
 
 def test_ragdoll_held_up_then_put_down_gets_up(puppet: PuppetRetargeter) -> None:
@@ -124,6 +126,54 @@ def test_ragdoll_held_up_then_put_down_gets_up(puppet: PuppetRetargeter) -> None
     assert joints[:, 1].min() > -0.05                        # nothing through the floor
     final = puppet.skeleton.fk(fr[-1].root_pos, fr[-1].rotations)
     assert final[puppet.skeleton.index("Head"), 1] > 1.4     # standing again
+    # where it lay: the get-up moves the character by its clip's own root travel only
+    lay = ragdoll[-1].root_pos
+    get_up = [f for f in fr if f.state is S.GET_UP]
+    clip = puppet.clips["get_up"]
+    travel = float(np.linalg.norm((clip.root_pos[-1] - clip.root_pos[0])[[0, 2]]))
+    for f in get_up + fr[-10:]:
+        assert np.hypot(f.root_pos[0] - lay[0], f.root_pos[2] - lay[2]) < travel + 0.6
+
+
+def test_held_still_at_the_grab_height_after_falling_limp_gets_up(puppet: PuppetRetargeter) -> None:
+    # lifted without jump momentum (ragdoll), then brought back to the grab height and held there still:
+    # the feet are down, so it gets up although the player never lets go or pushes the phone lower
+    def path(t: float):
+        if t < 1.0 or t >= 3.0:
+            return (0, 1.3, 0), 0.0, True
+        return (0, 1.3 + 0.6 * math.sin(math.pi * (t - 1.0) / 2.0), 0), 0.0, True
+    tl = timeline(run(puppet, path, 12.0))
+    assert S.RAGDOLL in tl and S.GET_UP in tl and tl[-1] is S.LOCOMOTION, tl
+
+
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.0, -1.0), (-0.7071, 0.7071)])
+def test_the_character_walks_forwards_whichever_way_the_stick_goes(puppet: PuppetRetargeter,
+                                                                    direction: tuple[float, float]) -> None:
+    # sideways, backwards and diagonally: it turns to face its travel and keeps up, feet not moonwalking
+    speed = 1.4
+    dx, dz = direction
+    fr = run(puppet, lambda t: ((dx * speed * max(0.0, t - 1), 1.3, dz * speed * max(0.0, t - 1)), 0.0, True), 6.0)
+    assert S.RAGDOLL not in timeline(fr)
+    last = fr[-1]
+    end = np.array([dx, 0.0, dz]) * speed * 5.0 + np.array([0.0, 0.0, 1.5])
+    assert np.hypot(last.root_pos[0] - end[0], last.root_pos[2] - end[2]) < 0.5
+    assert abs(math.remainder(puppet.heading - math.atan2(dx, dz), 2 * math.pi)) < math.radians(5)
+
+
+def test_state_changes_neither_stop_nor_rush_the_root(puppet: PuppetRetargeter) -> None:
+    # a running jump: the root's ground speed stays near the stick's through anticipation, flight and landing
+    def path(t: float):
+        z = 2.5 * t
+        s = t - 2.0
+        y = 1.3 + (2.5 * s - 4.905 * s * s if 0 <= s <= 0.5 else 0.0)
+        return (0, y, z), 0.0, True
+    fr = run(puppet, path, 4.0)
+    tl = timeline(fr)
+    assert S.AIRBORNE in tl and S.RAGDOLL not in tl, tl
+    z = np.array([f.root_pos[2] for f in fr])
+    v = np.diff(z) * 60.0
+    window = v[int(1.5 * 60):int(3.5 * 60)]
+    assert window.min() > 0.5 and window.max() < 5.0, (window.min(), window.max())
 
 
 def test_release_while_grounded(puppet: PuppetRetargeter) -> None:

@@ -72,13 +72,20 @@ def test_joint_limits_hold() -> None:
 def test_held_joint_follows_the_stick_end() -> None:
     rd = Ragdoll(PARENTS, OFFSETS)
     rd.start(standing(1.0))
-    target = np.array([0.5, 1.6, 0.3])
+    target = np.array([0.5, 2.0, 0.3])
     for _ in range(600):
         rd.step(1 / 120, hold=(2, target))
-    # hanging by the head under gravity: close to the target, body below it
+    # hanging by the head under gravity: close to the target, body below it, feet clear: not at rest
     assert np.linalg.norm(rd.pos[2] - target) < 0.1
     assert rd.pos[5, 1] < rd.pos[2, 1] and rd.pos[8, 1] < rd.pos[2, 1]
+    assert rd.pos[:, 1].min() > 0.2
     assert not rd.at_rest
+    # lowered until the feet are down and held still there: at rest (the player may let it get up)
+    target = np.array([0.5, 1.55, 0.3])
+    for _ in range(600):
+        rd.step(1 / 120, hold=(2, target))
+    assert rd.pos[:, 1].min() < 0.1 and rd.pos[0, 1] > 0.5
+    assert rd.at_rest
 
 
 def test_rotations_reproduce_the_particles() -> None:
