@@ -159,20 +159,112 @@ class WavingMotion:
                     ang[k] += amp * np.sin(w * t + ph)
                     rate[k] += amp * w * np.cos(w * t + ph)
             ax, ay, az = (amp * np.sin(w * t + ph) for amp, w, ph in self.lin)
-        phi, theta, psi = ang
-        dphi, dtheta, dpsi = rate
-        sphi, cphi = np.sin(phi), np.cos(phi)
-        sth, cth = np.sin(theta), np.cos(theta)
-        sps, cps = np.sin(psi), np.cos(psi)
-        p = dphi - dpsi * sth
-        q = dtheta * cphi + dpsi * cth * sphi
-        r = -dtheta * sphi + dpsi * cth * cphi
-        az = az + G
-        r00, r01, r02 = cps * cth, cps * sth * sphi - sps * cphi, cps * sth * cphi + sps * sphi
-        r10, r11, r12 = sps * cth, sps * sth * sphi + cps * cphi, sps * sth * cphi - cps * sphi
-        r20, r21, r22 = -sth, cth * sphi, cth * cphi
-        acc = np.stack([r00 * ax + r10 * ay + r20 * az, r01 * ax + r11 * ay + r21 * az,
-                        r02 * ax + r12 * ay + r22 * az], axis=1) / G
-        gyro = np.degrees(np.stack([p, q, r], axis=1))
-        eul = np.degrees(np.stack([phi, theta, psi], axis=1))
-        return acc, gyro, eul
+        return imu_readings(ang, rate, (ax, ay, az))
+
+
+def imu_readings(ang: np.ndarray, rate: np.ndarray, lin: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray,
+                                                                                       np.ndarray]:
+    """What an IMU reads on a body with ZYX angles ``ang = (roll, pitch, yaw)`` (rad, ``(3, n)``), their
+    rates (rad/s) and linear acceleration ``lin`` (world x, y, z, m/s^2; z up): specific force in the
+    sensor frame (g, ``(n, 3)``), body angular rate (deg/s, ``(n, 3)``), angles (degrees, ``(n, 3)``)."""
+    ax, ay, az = lin
+    phi, theta, psi = ang
+    dphi, dtheta, dpsi = rate
+    sphi, cphi = np.sin(phi), np.cos(phi)
+    sth, cth = np.sin(theta), np.cos(theta)
+    sps, cps = np.sin(psi), np.cos(psi)
+    p = dphi - dpsi * sth
+    q = dtheta * cphi + dpsi * cth * sphi
+    r = -dtheta * sphi + dpsi * cth * cphi
+    az = az + G
+    r00, r01, r02 = cps * cth, cps * sth * sphi - sps * cphi, cps * sth * cphi + sps * sphi
+    r10, r11, r12 = sps * cth, sps * sth * sphi + cps * cphi, sps * sth * cphi - cps * sphi
+    r20, r21, r22 = -sth, cth * sphi, cth * cphi
+    acc = np.stack([r00 * ax + r10 * ay + r20 * az, r01 * ax + r11 * ay + r21 * az,
+                    r02 * ax + r12 * ay + r22 * az], axis=1) / G
+    gyro = np.degrees(np.stack([p, q, r], axis=1))
+    eul = np.degrees(np.stack([phi, theta, psi], axis=1))
+    return acc, gyro, eul
+
+
+class PuppeteerMotion:
+    """A puppeteer's phone, held at the wrist and pointed at a character standing ``reach`` metres in front
+    and ``drop`` metres below it (the default ``retarget.puppet`` geometry): a choreography of
+    ``PERIOD_S`` seconds, repeated. Turning the phone about the vertical sweeps the character round the
+    performer (speed = ``reach`` x turn rate); rolling it lifts or lowers the stick's end.
+
+    0-0.6 s still (idle); walk (1.3 m/s) to 1.9 s; run (3 m/s) to 3.0 s; slow to a stop by 3.3 s; a clean
+    ballistic hop of the stick's end (take-off 2.2 m/s) at 3.5 s; a crouched walk (the end 0.3 m
+    lower) from 4.3 s; standing and still again before the period ends. The phone starts level with
+    yaw 0; ``at_many`` has ``WavingMotion``'s outputs, so the same page and app simulators send it.
+
+    Args:
+        reach: horizontal distance from the phone to the character's hips (m).
+        drop: how far the hips are below the phone (m).
+    """
+
+    PERIOD_S = 7.0
+    _OMEGA = ((0.0, 0.0), (0.6, 0.0), (0.8, 0.87), (1.9, 0.87), (2.1, 2.0), (3.0, 2.0), (3.3, 0.0), (4.3, 0.0),
+              (4.6, 0.6), (6.0, 0.6), (6.3, 0.0), (7.0, 0.0))           # turn rate keyframes (s, rad/s)
+    _HOP = (3.5, 2.2)                                                    # take-off (s), speed (m/s)
+    _CROUCH = ((4.1, 0.0), (4.4, -0.3), (6.2, -0.3), (6.6, 0.0))         # end height offset keyframes (s, m)
+
+    def __init__(self, reach: float = 1.5, drop: float = 0.32) -> None:
+        if not (reach > 0 and drop >= 0 and math.isfinite(reach) and math.isfinite(drop)):
+            raise ValueError("reach must be positive and drop non-negative")
+        self.reach, self.drop = float(reach), float(drop)
+        # the yaw is the integral of the piecewise-linear turn rate: exact on a fine grid, then interpolated
+        self._grid = np.linspace(0.0, self.PERIOD_S, 7001)
+        kt, kw = np.array(self._OMEGA).T
+        w = np.interp(self._grid, kt, kw)
+        self._w = w
+        self._yaw = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(self._grid))])
+
+    def height_offset(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The stick end's height above its start (m) and its rate (m/s) at times ``t`` (s)."""
+        u = np.mod(np.asarray(t, np.float64), self.PERIOD_S)
+        kt, kh = np.array(self._CROUCH).T
+        h = np.interp(u, kt, kh)
+        seg = np.searchsorted(kt, u, side="right") - 1
+        inside = (seg >= 0) & (seg < kt.size - 1)
+        dh = np.where(inside, (np.diff(kh) / np.diff(kt))[np.clip(seg, 0, kt.size - 2)], 0.0)
+        t0, v0 = self._HOP
+        tau = u - t0
+        flight = 2.0 * v0 / G
+        up = (tau >= 0) & (tau <= flight)
+        h = h + np.where(up, v0 * tau - 0.5 * G * tau * tau, 0.0)
+        dh = dh + np.where(up, v0 - G * tau, 0.0)
+        return h, dh
+
+    def at_many(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As ``WavingMotion.at_many``: specific force (g), body rate (deg/s), roll/pitch/yaw (deg)."""
+        t = np.asarray(t, np.float64)
+        loops, u = np.divmod(t, self.PERIOD_S)
+        psi = loops * self._yaw[-1] + np.interp(u, self._grid, self._yaw)
+        dpsi = np.interp(u, self._grid, self._w)
+        # roll alpha lifts the end by h: D sin(-alpha) - H cos(alpha) + H = h  (D = reach, H = drop)
+        h, dh = self.height_offset(t)
+        r = math.hypot(self.reach, self.drop)
+        beta = math.atan2(self.drop, self.reach)
+        x = np.clip((self.drop - h) / r, -1.0, 1.0)
+        phi = np.arcsin(x) - beta
+        dphi = -dh / (r * np.sqrt(np.maximum(1.0 - x * x, 1e-12)))
+        zero = np.zeros_like(t)
+        return imu_readings(np.stack([phi, zero, psi]), np.stack([dphi, zero, dpsi]), (zero, zero, zero))
+
+
+#: The motions a simulated phone can perform, by name (``perfcap sim phone --motion``).
+PHONE_MOTIONS = ("waving", "puppeteer")
+
+
+def phone_motion(name: str, seed: int = 1) -> WavingMotion | PuppeteerMotion:
+    """The named phone motion: ``waving`` (seeded free waving) or ``puppeteer`` (the puppet choreography).
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    if name == "waving":
+        return WavingMotion(seed)
+    if name == "puppeteer":
+        return PuppeteerMotion()
+    raise ValueError(f"unknown phone motion {name!r}: expected one of {', '.join(PHONE_MOTIONS)}")

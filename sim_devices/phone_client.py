@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from capture.clock import MONOTONIC, Clock
+from sim_devices.motion import PHONE_MOTIONS, phone_motion
 from sim_devices.phone_sim import page_hello, page_messages, page_pong
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,8 @@ class SimPagePhone:
     def __init__(self, url: str, token: str | None, phone_id: str = "sim-phone", *, rate_hz: float = 60.0,
                  duration_s: float | None = 10.0, seed: int = 1, fingerprint: str | None = None,
                  drop_at_s: float | None = None, drop_for_s: float = 0.5, batch_s: float = 0.05,
-                 clock: Clock = MONOTONIC) -> None:
+                 clock: Clock = MONOTONIC, motion: str = "waving") -> None:
+        phone_motion(motion)                           # an unknown motion fails here, not in the loop
         self.url = url
         self.token = token
         self.phone_id = phone_id
@@ -71,6 +73,7 @@ class SimPagePhone:
         self.drop_for_s = drop_for_s
         self.batch_s = batch_s
         self.clock = clock
+        self.motion = motion
         self.sent = 0
         self.events = 0
         self.pongs = 0
@@ -128,7 +131,8 @@ class SimPagePhone:
         self._loop = asyncio.get_running_loop()
         self.t0_host_ns = self.clock.now_ns()
         total = self.duration_s if self.duration_s is not None else 3600.0
-        msgs = page_messages(total, self.rate_hz, batch_s=self.batch_s, seed=self.seed, t0_ms=self.t0_ms)
+        msgs = page_messages(total, self.rate_hz, batch_s=self.batch_s, seed=self.seed, t0_ms=self.t0_ms,
+                             motion=self.motion)
         self.messages = msgs
         async with aiohttp.ClientSession() as session:
             ws = await self._connect(session)
@@ -255,9 +259,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=60.0, help="devicemotion rate, Hz")
     p.add_argument("--duration", type=float, default=30.0, help="seconds")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--motion", choices=PHONE_MOTIONS, default="waving",
+                   help="waving: seeded free waving; puppeteer: a choreography for perfcap puppet (walk, run, "
+                        "hop, crouch)")
     a = p.parse_args(argv)
     phone = SimPagePhone(a.url, a.token, a.id, rate_hz=a.rate, duration_s=a.duration, seed=a.seed,
-                         fingerprint=a.fingerprint)
+                         fingerprint=a.fingerprint, motion=a.motion)
     try:
         asyncio.run(phone.run())
     except KeyboardInterrupt:

@@ -5,7 +5,7 @@ encoders of ``devices.codecs.phone_json``) together with the frames they encode,
 service's simulators can compare what comes out of the devices with what went in.
 
 * ``page_hello``, ``page_pong`` and ``page_messages``: the page's messages; ``page_messages``
-  synthesises waving motion (``sim_devices.motion.WavingMotion``) as devicemotion events at a given
+  synthesises a phone motion (``sim_devices.motion``: waving, or a puppeteer's) as devicemotion events at a given
   rate with jittered, coarsened ``event.timeStamp``s, batched every 50 ms like the page does, plus
   deviceorientation events and optionally a swipe of touches.
 * ``dispel_samples`` and ``dispel_to_sensorlogger``: a real iPhone recording in the DISPEL /
@@ -35,7 +35,7 @@ from devices.codecs.phone_json import (
     SensorLoggerCodec,
     SensorLoggerMessage,
 )
-from sim_devices.motion import G, WavingMotion
+from sim_devices.motion import G, phone_motion
 
 _PAGE = PageCodec()
 _SL = SensorLoggerCodec()
@@ -72,8 +72,9 @@ def _coarsen(t: np.ndarray, resolution_ms: float) -> np.ndarray:
 def page_messages(duration_s: float, rate_hz: float = 60.0, *, batch_s: float = 0.05, seed: int = 1,
                   t0_ms: float = 1500.0, seq0: int = 0, jitter_ms: float = 0.3, resolution_ms: float = 0.005,
                   orientation_every: int = 3, touches: bool = False, invert_acc: bool = False,
-                  null_acceleration: bool = False) -> list[PageMessage]:
-    """Synthetic page data messages: ``WavingMotion`` as devicemotion events.
+                  null_acceleration: bool = False, motion: str = "waving") -> list[PageMessage]:
+    """Synthetic page data messages: a phone motion (``sim_devices.motion.phone_motion``) as devicemotion
+    events.
 
     Event ``k`` has ``timeStamp`` ``t0_ms + k * 1000 / rate_hz`` plus seeded jitter, rounded to
     ``resolution_ms`` (browsers coarsen it). Values: ``accelerationIncludingGravity`` = the specific
@@ -96,6 +97,7 @@ def page_messages(duration_s: float, rate_hz: float = 60.0, *, batch_s: float = 
         touches: add a one-finger swipe (start, moves, end) in the middle of the take.
         invert_acc: send both accelerations with the opposite sign (like old iOS Safari).
         null_acceleration: send ``acceleration`` as nulls (browsers without gravity separation).
+        motion: ``waving`` (seeded free waving) or ``puppeteer`` (the puppet choreography).
 
     Returns:
         The messages in send order.
@@ -105,7 +107,7 @@ def page_messages(duration_s: float, rate_hz: float = 60.0, *, batch_s: float = 
     period = 1000.0 / rate_hz
     t_ms = t0_ms + np.arange(n) * period + rnd.uniform(-jitter_ms, jitter_ms, n)
     t_ms = _coarsen(np.maximum.accumulate(t_ms), resolution_ms)
-    acc_g, gyro_dps, eul = WavingMotion(seed).at_many((t_ms - t0_ms) / 1000.0)
+    acc_g, gyro_dps, eul = phone_motion(motion, seed).at_many((t_ms - t0_ms) / 1000.0)
     phi, theta = np.radians(eul[:, 0]), np.radians(eul[:, 1])
     grav = np.stack([-np.sin(theta), np.cos(theta) * np.sin(phi), np.cos(theta) * np.cos(phi)], axis=1) * G
     inc = acc_g * G

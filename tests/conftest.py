@@ -88,10 +88,11 @@ def session_path(tmp_path: Path) -> str:
 
 
 def _record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[float, float] | None = None,
-                          seed: int = 3) -> Path:
+                          seed: int = 3, motion: str = "waving") -> Path:
     """A perfcap session of the built-in phone page: simulated page messages (waving motion, attitude
     every third event) through the real page codec, ``PhonePage``, clock sync and recorder. ``touch``:
-    one finger down from ``touch[0]`` to ``touch[1]`` seconds after the first event (moves every 50 ms)."""
+    one finger down from ``touch[0]`` to ``touch[1]`` seconds after the first event (moves every 50 ms);
+    ``motion``: ``waving`` or ``puppeteer`` (``sim_devices.motion.phone_motion``)."""
     import uuid
 
     import numpy as np
@@ -102,7 +103,7 @@ def _record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[floa
     from devices.transports.network import drop_hub, hub
     from sim_devices.phone_sim import page_hello, page_messages
 
-    msgs = page_messages(duration_s, seed=seed, t0_ms=1500.0)
+    msgs = page_messages(duration_s, seed=seed, t0_ms=1500.0, motion=motion)
     codec = PageCodec()
     rows = []
     if touch is not None:
@@ -140,5 +141,5 @@ def _record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[floa
 
 @pytest.fixture(scope="session")
 def record_phone_session():
-    """The recorder of simulated phone-page sessions (a function: path, duration_s, touch, seed)."""
+    """The recorder of simulated phone-page sessions (a function: path, duration_s, touch, seed, motion)."""
     return _record_phone_session
