@@ -848,8 +848,9 @@ def _start_demo_phone(service: Any, duration: float) -> Any:
     m = importlib.import_module(mod)
     ep = service.endpoints
     url = ep.page_url.replace("https://", "wss://").replace("http://", "ws://") + "ws/phone"
+    # the phone performs the puppeteer's choreography, so the demo's puppet walks, runs, hops and crouches
     phone = m.SimPagePhone(url, service.tokens.token, "demo-phone", rate_hz=60.0, duration_s=duration + 1.0,
-                           seed=7, fingerprint=ep.fingerprint or None)
+                           seed=7, fingerprint=ep.fingerprint or None, motion="puppeteer")
     return m.PhoneThread(phone).start()
 
 
@@ -1188,21 +1189,28 @@ def _puppet_live(args: argparse.Namespace, spec: Any, run: Any) -> tuple[str, in
 def _demo_puppet(reader: Any) -> None:
     """The puppet driven by the simulated phone's recorded attitude; ``puppet.bvh`` beside the session.
     A failure is one line: the demo goes on."""
+    import numpy as np
+
     from capture.puppet_run import PuppetRun, session_track
     from retarget.bvh import write_bvh
 
     path = os.path.join(os.path.dirname(os.path.abspath(reader.path)), "puppet.bvh")
     try:
         track = session_track(reader, "phone")
+        run = PuppetRun(rate=60.0)                      # builds the blend and its probe table
+        frames = track.resample(60.0)
         t0 = time.perf_counter()
-        run = PuppetRun(rate=60.0).run(track.resample(60.0))
+        run.run(frames)
         ms = (time.perf_counter() - t0) * 1e3 / max(run.frames, 1)
-        write_bvh(path, run.clip("puppet"))
+        clip = run.clip("puppet")
+        write_bvh(path, clip)
     except Exception as exc:  # noqa: BLE001 - the demo goes on; the reason is said in one line
         out(f"puppet: not driven from the phone ({type(exc).__name__}: {exc})")
         return
+    ground = np.hypot(np.diff(clip.root_pos[:, 0]), np.diff(clip.root_pos[:, 2])) * clip.fps
     held = "held throughout: the simulated phone sends no touch" if track.held_throughout else "grabbed by touch"
-    out(f"puppet: the phone's attitude ({held}) drove {run.frames} frames at 60 Hz ({ms:.2f} ms each); states "
+    out(f"puppet: the phone's attitude ({held}) drove {run.frames} frames at 60 Hz ({ms:.2f} ms each): the character "
+        f"covered {ground.sum() / clip.fps:.1f} m at up to {np.percentile(ground, 95):.1f} m/s; states "
         + " -> ".join(run.states_visited()) + f"; BVH {path}")
 
 
