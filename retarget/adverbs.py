@@ -27,7 +27,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 from scipy import linalg
@@ -1047,6 +1047,14 @@ class Verb:
         tc = np.mod(t, 1.0) if self.periodic else np.clip(t, 0.0, 1.0)
         m = np.minimum(np.floor(tc * n).astype(int), n - 1)
         return 1.0 / (n * (k[m + 1] - k[m]))
+
+    @overload
+    def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: Literal[False] = False
+             ) -> tuple[Array, Array]: ...
+
+    @overload
+    def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: Literal[True]
+             ) -> tuple[Array, Array, Array]: ...
 
     def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: bool = False
              ) -> tuple[Array, Array] | tuple[Array, Array, Array]:

@@ -223,7 +223,9 @@ class PuppetRetargeter:
         lift = max(0.0, float(end[1]) - self.stand_height)
         u_height = float(end[1]) / self.stand_height
         blend = self.mapping.update(t, float(np.hypot(self.velocity[0], self.velocity[2])), u_height)
-        ctx = PuppetContext(t=t, position=tuple(end), velocity=tuple(self.velocity), heading=heading,
+        ctx = PuppetContext(t=t, position=(float(end[0]), float(end[1]), float(end[2])),
+                            velocity=(float(self.velocity[0]), float(self.velocity[1]), float(self.velocity[2])),
+                            heading=heading,
                             height=lift, touch=bool(inp.touch), ragdoll_at_rest=self.ragdoll.at_rest,
                             crouch=float(blend.p_height))
         transitions = tuple(self.machine.step(ctx))

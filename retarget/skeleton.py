@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Literal, overload
 
 import numpy as np
 
@@ -246,6 +247,14 @@ class Skeleton:
         if not np.all(np.isfinite(f)) or np.any(f <= 0):
             raise ValueError("bone length factors must be finite and > 0")
         return Skeleton(self.names, self.parents, self.offsets * f[:, None], dict(self.unity_names))
+
+    @overload
+    def fk(self, root_pos: np.ndarray, rotations: np.ndarray, *, world_rotations: Literal[False] = False
+           ) -> np.ndarray: ...
+
+    @overload
+    def fk(self, root_pos: np.ndarray, rotations: np.ndarray, *, world_rotations: Literal[True]
+           ) -> tuple[np.ndarray, np.ndarray]: ...
 
     def fk(self, root_pos: np.ndarray, rotations: np.ndarray, *, world_rotations: bool = False
            ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:

@@ -211,8 +211,8 @@ def yaw_quat(angle: float | Array) -> Array:
         (..., 4).
     """
     if isinstance(angle, (float, int)):               # one heading (every frame): no array machinery
-        h = 0.5 * float(angle)
-        return np.array([math.cos(h), 0.0, math.sin(h), 0.0])
+        half = 0.5 * float(angle)
+        return np.array([math.cos(half), 0.0, math.sin(half), 0.0])
     h = 0.5 * np.asarray(angle, dtype=float)
     z = np.zeros_like(h)
     return np.stack([np.cos(h), z, np.sin(h), z], axis=-1)

@@ -101,7 +101,7 @@ class TransitionFrame:
     t: Array
 
 
-def _rot_y(a: Array, x: Array, z: Array) -> tuple[Array, Array]:
+def _rot_y(a: float | Array, x: Array, z: Array) -> tuple[Array, Array]:
     ca, sa = np.cos(a), np.sin(a)
     return ca * x + sa * z, -sa * x + ca * z
 
