@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _common import check, header, summary
 
 from retarget.puppet import PhoneInput, PuppetRetargeter
-from retarget.vmc import decode_frame, encode_frame
+from retarget.vmc import VmcEncoder, build_frame, decode_frame, encode_frame
 
 
 def scripted(seconds: float, fps: float) -> list[PhoneInput]:
@@ -183,6 +183,26 @@ def main() -> int:
     print(f"   latency p50 {np.percentile(lat, 50):.3f} ms  p99 {np.percentile(lat, 99):.3f} ms  max {lat.max():.3f} ms")
     _result(float(np.percentile(lat, 99)) < 5.0 and len(lat) > 0,
            f"phone sample to VMC packet on loopback p99 < 5 ms: {np.percentile(lat, 99):.3f} ms")
+
+    print("\n-- VMC bundle encoding, 30 bones (python-osc building every message, the baseline, vs the template"
+          " it builds once)")
+    names = [p.skeleton.unity_names.get(n, n) for n in p.skeleton.names]
+    p.reset()
+    frames = [p.step(x) for x in inputs[:200]]
+    enc = VmcEncoder(names)
+    for label, fn in (("python-osc per frame", lambda f: build_frame(names, p.skeleton.offsets, f.rotations,
+                                                                       f.root_pos, f.rotations[0], f.t)),
+                      ("template (VmcEncoder)", lambda f: enc.encode(p.skeleton.offsets, f.rotations, f.root_pos,
+                                                                     f.rotations[0], f.t))):
+        ts = []
+        for f in frames:
+            t1 = time.perf_counter()
+            fn(f)
+            ts.append(time.perf_counter() - t1)
+        print(f"   {label:22s} p50 {np.median(ts) * 1e3:.3f} ms  p99 {np.percentile(ts, 99) * 1e3:.3f} ms")
+    same = all(build_frame(names, p.skeleton.offsets, f.rotations, f.root_pos, f.rotations[0], f.t)
+               == enc.encode(p.skeleton.offsets, f.rotations, f.root_pos, f.rotations[0], f.t) for f in frames)
+    _result(same, f"template bundles byte-identical to python-osc's: {len(frames)} frames compared")
 
     print("\n-- inverse lookup round trip (the probe table measured from the blended locomotion)")
     rng = np.random.default_rng(0)
