@@ -287,7 +287,7 @@ class PuppetRetargeter:
                              self.position[2] + self.velocity[2] * glide]), rot, p, 1.0
         if state is PuppetState.AIRBORNE:
             clip = self.clips["mid_jump"]
-            _, rot = clip.sample(min(t - self._state_at, clip.duration))
+            _, rot = clip.sample(self._jump_clip_time(t, end, clip))
             rot = np.array(rot, np.float64)
             rot[0] = quat_mul(yaw, rot[0])
             return end + self._jump_offset, rot, (0.0, 1.0), 1.0
@@ -311,6 +311,22 @@ class PuppetRetargeter:
         self.phase = (self.phase + dt / self.verb.duration(p)) % 1.0
         rot[0] = quat_mul(yaw_quat(self.heading), rot[0])
         return np.array([self.position[0], float(pos[1]), self.position[2]]), rot, p, 1.0
+
+    def _jump_clip_time(self, t: float, end: np.ndarray, clip: Clip) -> float:
+        """Where the mid-jump clip is: the fitted parabola's apex drives it (spec 3.4), the clip's middle
+        key-time (the tuck) at the apex, its end at the height the jump started from; by time since takeoff
+        while the fit has no apex yet."""
+        jump = self.machine.jump
+        arc = jump.arc if jump is not None else None
+        apex_key = clip.key_times[1] if len(clip.key_times) > 2 else 0.5 * clip.duration
+        if jump is None or arc is None or arc.apex is None or not arc.apex[0] > 0:
+            return min(t - self._state_at, clip.duration)
+        if arc.parameter == "distance":
+            ux, uz = jump.direction
+            x = (float(end[0]) - jump.start[0]) * ux + (float(end[2]) - jump.start[2]) * uz
+        else:
+            x = t - jump.t0
+        return float(min(max(apex_key * x / arc.apex[0], 0.0), clip.duration))
 
     def _facing(self, dt: float, still_heading: float) -> float:
         """The grounded character's heading: it turns to face where the stick's end goes while that moves

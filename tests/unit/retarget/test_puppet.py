@@ -188,3 +188,19 @@ def test_time_must_not_go_back(puppet: PuppetRetargeter) -> None:
         puppet.step(PhoneInput(0.5, (1.0, 0, 0, 0), False))
     with pytest.raises(ValueError):
         puppet.step(PhoneInput(2.0, (0.0, 0, 0, 0), False))
+
+
+def test_the_parabolas_apex_drives_the_mid_jump_clip(puppet: PuppetRetargeter) -> None:
+    # a high jump (apex 0.61 s after the trigger, 0.41 s after takeoff, past the crossfade): at the stick's
+    # apex the pose is the clip's tuck (its middle key-time), and the clip does not run on by time alone
+    v0 = 6.0
+
+    def path(t: float):
+        s = max(0.0, t - 1.0)
+        return (0, max(1.3, 1.3 + v0 * s - 4.905 * s * s), 1.0 * s), 0.0, True
+    fr = run(puppet, path, 2.5)
+    assert S.AIRBORNE in timeline(fr) and S.RAGDOLL not in timeline(fr)
+    clip = puppet.clips["mid_jump"]
+    apex = min((f for f in fr if f.state is S.AIRBORNE), key=lambda f: abs(f.t - (1.0 + v0 / 9.81)))
+    _, tuck = clip.sample(clip.key_times[1])
+    np.testing.assert_allclose(np.abs(np.sum(apex.rotations[1:] * tuck[1:], axis=1)), 1.0, atol=2e-3)
