@@ -147,7 +147,8 @@ class PuppetRetargeter:
         mc = self.config.machine or MachineConfig(character_height=self.config.height,
                                                    get_up_duration=self.clips["get_up"].duration)
         self.machine = PuppetStateMachine(mc)
-        self.stick = MotionStick(clearance=0.5 * self.stand_height)
+        self._clearance = 0.5 * self.stand_height
+        self.stick = MotionStick(clearance=self._clearance)
         self.ragdoll = Ragdoll(self.skeleton.parents, self.skeleton.offsets)
         self.hold_index = self.skeleton.index(self.config.hold_joint)
         self.reset()
@@ -167,6 +168,7 @@ class PuppetRetargeter:
         self._state_at = 0.0
         self._jump_offset = np.zeros(3)
         self._get_up_base = np.zeros(3)
+        self._hold_offset = np.zeros(3)
         self._prev_joints: np.ndarray | None = None
         self._touch = False
         self.machine = PuppetStateMachine(self.machine.config)
@@ -196,12 +198,16 @@ class PuppetRetargeter:
         if inp.touch and not self._touch:
             x_obj = pose_matrix(self.position, yaw_quat(self.heading))
             self.stick.grab(x_phone, x_obj)
+            if self.machine.state is PuppetState.RAGDOLL:   # the held joint stays where it lies
+                self._hold_offset = self.ragdoll.pos[self.hold_index] - self.ragdoll.pos[0]
         elif not inp.touch and self._touch:
             self.stick.release()
         self._touch = bool(inp.touch)
 
         state = self.machine.state
         grounded = state in (PuppetState.LOCOMOTION, PuppetState.JUMP_ANTICIPATION, PuppetState.LANDING)
+        # the ground shortens the stick so the standing root stays up; a limp body may lie on the floor
+        self.stick.clearance = self.ragdoll.s.radius if state is PuppetState.RAGDOLL else self._clearance
         if self.stick.held:
             target = self.stick.update(x_phone, grounded=grounded)
             end = target.pose[:3, 3].copy()
@@ -251,6 +257,7 @@ class PuppetRetargeter:
             joints = self.skeleton.fk(self._last_root, self._last_rot)
             vel = np.tile(self.velocity, (joints.shape[0], 1))
             self.ragdoll.start(joints, vel)
+            self._hold_offset = joints[self.hold_index] - self._last_root   # the stick holds the root
             self._fade_from = None                      # physics takes over from the current pose
         elif last is PuppetState.AIRBORNE:
             # the jump follows the stick's end from wherever the character took off (no jump to the end)
@@ -292,7 +299,7 @@ class PuppetRetargeter:
             rot[0] = quat_mul(yaw, rot[0])
             return end + self._jump_offset, rot, (0.0, 1.0), 1.0
         if state is PuppetState.RAGDOLL:
-            hold = (self.hold_index, end) if self.stick.held else None
+            hold = (self.hold_index, end + self._hold_offset) if self.stick.held else None
             if dt > 0:
                 self.ragdoll.step(dt, hold)
             root, rot = self.ragdoll.rotations()

@@ -204,3 +204,20 @@ def test_the_parabolas_apex_drives_the_mid_jump_clip(puppet: PuppetRetargeter) -
     apex = min((f for f in fr if f.state is S.AIRBORNE), key=lambda f: abs(f.t - (1.0 + v0 / 9.81)))
     _, tuck = clip.sample(clip.key_times[1])
     np.testing.assert_allclose(np.abs(np.sum(apex.rotations[1:] * tuck[1:], axis=1)), 1.0, atol=2e-3)
+
+
+def test_regrabbing_a_lying_ragdoll_does_not_yank_it(puppet: PuppetRetargeter) -> None:
+    # lifted limp, let go (it falls and lies), grabbed again from above: the held chest stays where it lies
+    def path(t: float):
+        if t < 1.0:
+            return (0, 1.3, 0), 0.0, True
+        if t < 3.0:
+            return (0, 1.3 + 0.6 * min(1.0, (t - 1.0) / 1.5), 0), 0.0, True
+        return (0, 1.9, 0), 0.0, t >= 3.5
+    fr = run(puppet, path, 3.6)
+    assert fr[-1].state is S.RAGDOLL
+    chest = puppet.skeleton.index(puppet.config.hold_joint)
+    k = next(i for i, f in enumerate(fr) if f.t >= 3.5)
+    before, after = (puppet.skeleton.fk(f.root_pos, f.rotations)[chest] for f in (fr[k - 1], fr[k + 3]))
+    assert before[1] < 0.3                                    # it was lying
+    assert np.linalg.norm(after - before) < 0.1
