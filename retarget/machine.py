@@ -99,6 +99,8 @@ class PuppetContext:
         object_distance: distance to the nearest manipulable object, metres (inf when none).
         crouch: the crouch blend parameter ``p_height`` (0 fully crouched, 1 standing).
         interaction_done: the current interaction (pick-up, roll) has finished.
+        speedup: how much faster than its own pace the locomotion must play to keep up with the stick (1
+            inside the feasible set; ``u_vel / u'_vel`` beyond it).
     """
 
     t: float
@@ -111,6 +113,7 @@ class PuppetContext:
     object_distance: float = math.inf
     crouch: float = 1.0
     interaction_done: bool = False
+    speedup: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,7 +129,10 @@ class MachineConfig:
         landing: landing crouch, s (spec: 0.2).
         above_ground: stick height above which the puppet counts as held above the ground, m (spec: 0.15).
         ground_hysteresis: it is back on the ground only below ``above_ground - ground_hysteresis``, m.
-        unsupported_dwell: held above the ground this long (no jump) -> ragdoll, s.
+        unsupported_dwell: held above the ground this long (no jump) -> ragdoll, s; also how long the stick
+            may race faster than ``max_speedup`` times the fastest clip.
+        max_speedup: the most the locomotion plays faster than its own pace (the spec's out-of-range
+            speed-up); a stick dragged faster than that fits no animation -> ragdoll (our addition).
         near_ground: in ragdoll, a held stick this low counts as near the ground, m.
         rest_dwell: the ragdoll must be at rest (and released or near the ground) this long, s.
         get_up_duration: the get-up clip's duration, s.
@@ -146,6 +152,7 @@ class MachineConfig:
     above_ground: float = 0.15
     ground_hysteresis: float = 0.05
     unsupported_dwell: float = 0.2
+    max_speedup: float = 2.0
     near_ground: float = 0.10
     rest_dwell: float = 0.1
     get_up_duration: float = 1.0
@@ -161,13 +168,15 @@ class MachineConfig:
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"MachineConfig.{name} must be finite and > 0, got {v!r}")
         for name in ("jump_dwell", "anticipation", "landing", "above_ground", "ground_hysteresis",
-                     "unsupported_dwell", "near_ground", "rest_dwell", "get_up_duration", "interact_radius",
-                     "interact_exit_radius", "crouch_threshold", "interact_dwell"):
+                     "unsupported_dwell", "max_speedup", "near_ground", "rest_dwell", "get_up_duration",
+                     "interact_radius", "interact_exit_radius", "crouch_threshold", "interact_dwell"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"MachineConfig.{name} must be finite and >= 0, got {v!r}")
         if self.ground_hysteresis > self.above_ground:
             raise ValueError("ground_hysteresis must not exceed above_ground")
+        if self.max_speedup < 1.0:
+            raise ValueError(f"MachineConfig.max_speedup must be >= 1, got {self.max_speedup!r}")
         if self.interact_exit_radius < self.interact_radius:
             raise ValueError("interact_exit_radius must be >= interact_radius")
 
@@ -205,6 +214,7 @@ class PuppetStateMachine:
         self._lift_start: tuple[float, tuple[float, float, float], tuple[float, float, float], float] | None = None
         self._rest_since: float | None = None
         self._near_since: float | None = None
+        self._fast_since: float | None = None
 
     # ------------------------------------------------------------------------------------------------
     # The pure part: table lookup and actions
@@ -309,6 +319,11 @@ class PuppetStateMachine:
                 self._rest_since = t
         else:
             self._rest_since = None
+        if ctx.speedup > cfg.max_speedup:
+            if self._fast_since is None:
+                self._fast_since = t
+        else:
+            self._fast_since = None
         near = ctx.object_distance < cfg.interact_radius and ctx.crouch < cfg.crouch_threshold
         if near:
             if self._near_since is None:
@@ -344,6 +359,8 @@ class PuppetStateMachine:
                 return e.JUMP_TRIGGER, t, None
             if self._above and self._dwelt(self._above_since, cfg.unsupported_dwell, t):
                 return e.UNSUPPORTED, t, None
+            if self._dwelt(self._fast_since, cfg.unsupported_dwell, t):
+                return e.UNSUPPORTED, t, "too_fast"
             if self._dwelt(self._near_since, cfg.interact_dwell, t):
                 return e.NEAR_OBJECT, t, None
             return None

@@ -233,7 +233,7 @@ class PuppetRetargeter:
                             velocity=(float(self.velocity[0]), float(self.velocity[1]), float(self.velocity[2])),
                             heading=heading,
                             height=lift, touch=bool(inp.touch), ragdoll_at_rest=self.ragdoll.at_rest,
-                            crouch=float(blend.p_height))
+                            crouch=float(blend.p_height), speedup=float(blend.speedup))
         transitions = tuple(self.machine.step(ctx))
         new_state = self.machine.state
         if transitions:
@@ -271,7 +271,7 @@ class PuppetRetargeter:
         yaw = yaw_quat(heading)
         if state is PuppetState.LOCOMOTION:
             p = (float(blend.p_vel), float(blend.p_height))
-            speedup = float(blend.speedup)
+            speedup = min(float(blend.speedup), self.machine.config.max_speedup)
             dur = self.verb.duration(p)
             self.phase = (self.phase + dt * speedup / dur) % 1.0
             pos, vel, rot = self.verb.pose(p, self.phase, with_position=True)

@@ -68,7 +68,7 @@ class PuppetEvent(enum.Enum):
     INVALID_JUMP = "invalid_jump"          # one of the three invalid-jump rules fired
     TOUCHDOWN = "touchdown"                # ground contact while descending
     LANDING_DONE = "landing_done"          # the landing crouch finished
-    UNSUPPORTED = "unsupported"            # held above the ground with no jump momentum
+    UNSUPPORTED = "unsupported"            # held above the ground with no jump momentum, or dragged too fast
     AT_REST = "at_rest"                    # ragdoll at rest on the ground, released or stick near the ground
     GET_UP_DONE = "get_up_done"            # the get-up clip finished
     NEAR_OBJECT = "near_object"            # a manipulable object is close and the puppet is crouched

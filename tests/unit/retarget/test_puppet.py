@@ -221,3 +221,14 @@ def test_regrabbing_a_lying_ragdoll_does_not_yank_it(puppet: PuppetRetargeter) -
     before, after = (puppet.skeleton.fk(f.root_pos, f.rotations)[chest] for f in (fr[k - 1], fr[k + 3]))
     assert before[1] < 0.3                                    # it was lying
     assert np.linalg.norm(after - before) < 0.1
+
+
+def test_a_stick_racing_faster_than_any_gait_falls_limp(puppet: PuppetRetargeter) -> None:
+    # 12 m/s along the ground: more than twice the run's pace fits no animation -> ragdoll ("too_fast");
+    # until then the clips play at most twice as fast
+    fr = run(puppet, lambda t: ((0, 1.3, 12.0 * max(0.0, t - 1.0)), 0.0, True), 2.5)
+    tl = timeline(fr)
+    assert tl == [S.LOCOMOTION, S.RAGDOLL], tl
+    limp = next(tr for f in fr for tr in f.transitions if tr.to_state is S.RAGDOLL)
+    assert limp.reason == "too_fast"
+    assert max(f.speedup for f in fr) <= 2.0 + 1e-12
