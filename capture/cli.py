@@ -1045,32 +1045,34 @@ def _check_writable(path: str | None, flag: str) -> None:
         raise ConfigError(f"{flag} {path} is a directory")
 
 
-def _puppet_outputs(run: Any, args: argparse.Namespace) -> list[str]:
-    """Write the BVH and the timeline; what was written, as summary lines.
+def _puppet_outputs(run: Any, args: argparse.Namespace) -> tuple[list[str], list[str]]:
+    """Write the BVH and the timeline, each whether or not the other could be written.
 
-    Raises:
-        ConfigError: a file cannot be written.
+    Returns:
+        (what was written, as summary lines; what could not be, one message each).
     """
     from retarget.bvh import write_bvh
 
-    lines = []
+    lines, errors = [], []
     if args.output:
         clip = run.clip(os.path.splitext(os.path.basename(args.output))[0] or "puppet")
         try:
             write_bvh(args.output, clip)
         except OSError as exc:
-            raise ConfigError(f"cannot write {args.output}: {exc.strerror or exc}") from None
-        lines.append(f"  BVH written to {args.output} ({clip.n_frames} frames at {clip.fps:g} fps,"
-                     f" {clip.skeleton.n_joints} joints)")
+            errors.append(f"cannot write {args.output}: {exc.strerror or exc}")
+        else:
+            lines.append(f"  BVH written to {args.output} ({clip.n_frames} frames at {clip.fps:g} fps,"
+                         f" {clip.skeleton.n_joints} joints)")
     if args.timeline:
         tl = run.timeline()
         try:
             with open(args.timeline, "w", encoding="utf-8") as f:
                 f.write("[\n" + ",\n".join(" " + json.dumps(e) for e in tl) + "\n]\n")
         except OSError as exc:
-            raise ConfigError(f"cannot write {args.timeline}: {exc.strerror or exc}") from None
-        lines.append(f"  timeline written to {args.timeline} ({len(tl)} entries)")
-    return lines
+            errors.append(f"cannot write {args.timeline}: {exc.strerror or exc}")
+        else:
+            lines.append(f"  timeline written to {args.timeline} ({len(tl)} entries)")
+    return lines, errors
 
 
 def cmd_puppet(args: argparse.Namespace) -> int:
@@ -1079,6 +1081,7 @@ def cmd_puppet(args: argparse.Namespace) -> int:
         VmcSender,
         check_rate,
         parse_host_port,
+        probe_writable,
         read_trajectory,
         session_track,
     )
@@ -1092,6 +1095,8 @@ def cmd_puppet(args: argparse.Namespace) -> int:
         raise ConfigError("--device chooses the phone of a --session")
     _check_writable(args.output, "-o")
     _check_writable(args.timeline, "--timeline")
+    probe_writable(args.output, "-o")          # before the performance, not after it
+    probe_writable(args.timeline, "--timeline")
     if args.vmc:
         parse_host_port(args.vmc)
     spec = None
@@ -1125,7 +1130,12 @@ def cmd_puppet(args: argparse.Namespace) -> int:
             source, code, notes = _puppet_live(args, spec, run)
         else:
             source = track.source
-            run.run(track.resample(rate))
+            for inp in track.resample(rate):
+                try:
+                    run.step(inp)
+                except ValueError as exc:   # an input the retargeter cannot follow: bad input, one line
+                    raise ConfigError(f"{source}: the puppet cannot follow the input at {inp.t:.6g} s"
+                                      f" ({' '.join(str(exc).split())})") from None
     finally:
         if vmc is not None:
             vmc.close()
@@ -1137,7 +1147,8 @@ def cmd_puppet(args: argparse.Namespace) -> int:
         out(f"  note: {note}")
     out("  states: " + ", ".join(f"{s} {t:.2f} s" for s, t in run.state_times().items())
         + f" ({len(run.timeline()) - 1} change(s))")
-    for line in _puppet_outputs(run, args):
+    written, unwritten = _puppet_outputs(run, args)
+    for line in written:
         out(line)
     if vmc is not None:
         out(f"  VMC: {vmc.sent} bundle(s) sent to {args.vmc} over UDP"
@@ -1145,6 +1156,9 @@ def cmd_puppet(args: argparse.Namespace) -> int:
         if vmc.errors and not vmc.sent:
             print(f"perfcap: error: no VMC bundle could be sent to {args.vmc} ({vmc.first_error})", file=sys.stderr)
             code = code or EXIT_CHECK_FAILED
+    if unwritten:
+        print(f"perfcap: error: {'; '.join(unwritten)}", file=sys.stderr)
+        code = EXIT_BAD_INPUT
     return code
 
 
@@ -1176,6 +1190,9 @@ def _puppet_live(args: argparse.Namespace, spec: Any, run: Any) -> tuple[str, in
         notes.append(f"no touch from {dev.name}: the puppet stayed released (--hold: held throughout)")
     if follower.skipped:
         notes.append(f"{follower.skipped} attitude sample(s) without values or out of order skipped")
+    if follower.unknown_touches:
+        notes.append(f"{follower.unknown_touches} touch row(s) with a phase other than 0-3 (start, move, end,"
+                     " cancel) ignored")
     if follower.errors:
         notes.append(f"{follower.errors} frame(s) failed (first: {follower.first_error})")
     failed = [n for n, d in report.devices.items() if d["state"] == "failed" or not d.get("opens", 1)]

@@ -14,7 +14,8 @@ What this module owns:
   fixed-rate grid of the phone's bus times as its attitude samples arrive.
 
 Phone orientation: the phone streams give the phone's attitude in a Z-up world (the W3C
-deviceorientation angles alpha, beta, gamma (intrinsic Z-X'-Y'', degrees) in East-North-Up; the
+deviceorientation angles alpha, beta, gamma (intrinsic Z-X'-Y'', degrees) in East-North-Up; Android's
+orientation angles azimuth, pitch, roll (HyperIMU), turned into alpha, beta, gamma as Chromium does; the
 quaternion of Android's rotation vector and iOS's CoreMotion attitude, Z vertical; perfcap's own
 ``<dev>/orientation``, ENU). They are turned into perfcap's world (Y up) by a -90 degree rotation about
 X: up becomes +Y, north becomes -Z, east stays +X. A trajectory CSV is already in perfcap's world.
@@ -32,6 +33,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import os
 import socket
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -42,16 +44,19 @@ import numpy as np
 
 from capture.bus import Subscriber
 from capture.errors import ConfigError
-from capture.quat import quat_mul, quat_slerp
+from capture.quat import quat_conj, quat_mul, quat_rotate, quat_slerp
 from capture.sample import Sample, SampleBatch, StreamInfo
 from retarget.puppet import PhoneInput, PuppetFrame, PuppetRetargeter
 from retarget.skeleton import Clip, Skeleton
+from retarget.timeline import split_heading, yaw_quat
 from retarget.vmc import VmcEncoder
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "ATTITUDE_STREAMS",
+    "EULER_ANDROID",
+    "EULER_W3C",
     "TRAJECTORY_COLUMNS",
     "Z_UP_TO_Y_UP",
     "PhoneTrack",
@@ -60,16 +65,21 @@ __all__ = [
     "VmcSender",
     "attitude_quaternions",
     "parse_host_port",
+    "probe_writable",
     "read_trajectory",
     "session_track",
     "touch_changes",
     "touch_columns",
+    "unknown_touch_phases",
 ]
 
 #: The columns of a trajectory CSV (any order; a header line is required).
 TRAJECTORY_COLUMNS = ("t", "px", "py", "pz", "qw", "qx", "qy", "qz", "touch")
 #: A phone's orientation streams, by preference: the phone's own attitude, else perfcap's fusion.
 ATTITUDE_STREAMS = ("attitude", "orientation")
+#: Euler attitude channels: W3C deviceorientation, and Android's orientation angles.
+EULER_W3C = ("alpha", "beta", "gamma")
+EULER_ANDROID = ("azimuth", "pitch", "roll")
 #: Z-up world (ENU) to perfcap's Y-up world: -90 degrees about X (w, x, y, z).
 Z_UP_TO_Y_UP = np.array([math.sqrt(0.5), -math.sqrt(0.5), 0.0, 0.0])
 #: Largest accepted deviation of a CSV quaternion's norm from 1 (rows are normalised).
@@ -78,6 +88,12 @@ UNIT_TOLERANCE = 0.01
 GRID_SLACK_NS = 1000
 #: Highest --rate accepted, Hz.
 MAX_RATE = 1000.0
+#: Longest input driven, seconds (24 h): more is no performance, and its frames would not fit in memory.
+MAX_SPAN_S = 24 * 3600.0
+#: Largest accepted CSV position coordinate, metres.
+MAX_POSITION = 1e5
+#: A median step between samples from this long (seconds) to 1000 suggests times written in milliseconds.
+MS_STEP_S = 5.0
 
 
 def check_rate(rate: float) -> float:
@@ -120,18 +136,27 @@ class PhoneTrack:
     @property
     def duration(self) -> float:
         """Seconds from the first sample to the last."""
-        return float(self.t[-1] - self.t[0]) if len(self.t) else 0.0
+        return float(self.t[-1]) - float(self.t[0]) if len(self.t) else 0.0   # Python floats: inf, no warning
 
     def frame_times(self, rate: float) -> np.ndarray:
-        """The fixed-rate grid from the first sample to the last (inclusive where it falls on it)."""
-        n = math.floor(self.duration * rate + 1e-9) + 1
+        """The fixed-rate grid from the first sample to the last (inclusive where it falls on it).
+
+        Raises:
+            ConfigError: the input spans more than :data:`MAX_SPAN_S` (24 h of frames at ``rate``).
+        """
+        span = self.duration
+        if not span <= MAX_SPAN_S:                        # also inf and nan
+            ms = "; the times look like milliseconds: write them in seconds" if _looks_like_ms(self.t) else ""
+            raise ConfigError(f"{self.source}: the input spans {span:g} s, {span * rate:.3g} frames at {rate:g} Hz;"
+                              f" at most {MAX_SPAN_S / 3600:g} h ({MAX_SPAN_S * rate:.0f} frames) is driven{ms}")
+        n = math.floor(span * rate + 1e-9) + 1
         return float(self.t[0]) + np.arange(n) / rate
 
     def resample(self, rate: float) -> list[PhoneInput]:
         """Input frames at ``rate`` Hz: linear positions, slerped orientations, touch as last set.
 
         Raises:
-            ConfigError: a bad rate.
+            ConfigError: a bad rate, or an input spanning more than 24 h.
         """
         rate = check_rate(rate)
         g = self.frame_times(rate)
@@ -157,14 +182,26 @@ class PhoneTrack:
                 for k in range(len(gs))]
 
 
+def _median_step(t: np.ndarray) -> float:
+    with np.errstate(over="ignore", invalid="ignore"):
+        return float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+
+
+def _looks_like_ms(t: np.ndarray) -> bool:
+    """Sample times whose median step is 5 to 1000 "seconds": a phone's milliseconds written as seconds."""
+    return MS_STEP_S <= _median_step(t) <= 1000.0
+
+
 def read_trajectory(path: str) -> PhoneTrack:
     """A trajectory CSV: a header with the columns ``t,px,py,pz,qw,qx,qy,qz,touch`` (any order), then
     one row per sample: seconds (strictly increasing), metres, the phone's unit quaternion in perfcap's
     world (Y up) and touch 0 or 1. Blank lines and lines starting with ``#`` are skipped. The position
-    cells may be empty on every row: a phone that knows only its orientation.
+    cells may be empty on every row: a phone that knows only its orientation. Positions are bounded
+    (:data:`MAX_POSITION` metres).
 
     Raises:
-        ConfigError: the file is missing or unreadable, or a row is malformed (with its line number).
+        ConfigError: the file is missing or unreadable, or a row is malformed or out of range (with its
+            line number).
     """
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
@@ -214,6 +251,9 @@ def read_trajectory(path: str) -> PhoneTrack:
                 raise ConfigError(f"{path} line {line}, column {name}: {cell!r} is not a number") from None
             if not math.isfinite(v):
                 raise ConfigError(f"{path} line {line}, column {name}: {cell!r} is not a finite number")
+            if k in (1, 2, 3) and abs(v) > MAX_POSITION:
+                raise ConfigError(f"{path} line {line}, column {name}: {cell!r} m is out of range"
+                                  f" (positions within +-{MAX_POSITION:g} m)")
             data[r, k] = v
         if data[r, 8] not in (0.0, 1.0):
             raise ConfigError(f"{path} line {line}, column touch: {cells[col[8]]!r}; expected 0 or 1")
@@ -230,9 +270,12 @@ def read_trajectory(path: str) -> PhoneTrack:
         line = body[int(np.argmax(no_pos != no_pos[0]))][0]
         raise ConfigError(f"{path} line {line}: px,py,pz must be given on every row or left empty on every row")
     q = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
-    notes = ("no phone position (px,py,pz empty): the phone is held at a fixed pivot",) if no_pos.all() else ()
+    notes = ["no phone position (px,py,pz empty): the phone is held at a fixed pivot"] if no_pos.all() else []
+    if _looks_like_ms(data[:, 0]):
+        notes.append(f"the times step by a median {_median_step(data[:, 0]):g} s: if they are"
+                     " milliseconds, write them in seconds")
     return PhoneTrack(path, data[:, 0].copy(), q, None if no_pos.all() else data[:, 1:4].copy(),
-                      data[:, 0].copy(), data[:, 8] > 0.5, False, notes)
+                      data[:, 0].copy(), data[:, 8] > 0.5, False, tuple(notes))
 
 
 def attitude_quaternions(info: StreamInfo, values: np.ndarray) -> np.ndarray:
@@ -240,18 +283,30 @@ def attitude_quaternions(info: StreamInfo, values: np.ndarray) -> np.ndarray:
     is missing (null) or the quaternion is zero.
 
     Args:
-        info: the stream: kind ``euler`` (alpha, beta, gamma: intrinsic Z-X'-Y'', degrees or radians by
-            its units) or ``quat`` / ``orientation`` (channels w, x, y, z), in a Z-up world.
+        info: the stream: kind ``euler`` or ``quat`` / ``orientation`` (channels w, x, y, z), in a Z-up
+            world. The euler convention is chosen by the channel names: ``alpha, beta, gamma`` are W3C
+            deviceorientation angles (intrinsic Z-X'-Y''); ``azimuth, pitch, roll`` are Android's
+            (``SensorManager.getOrientation``: azimuth clockwise from north, pitch about -X), read as
+            Chromium does for deviceorientation: alpha = -azimuth, beta = -pitch, gamma = roll. Degrees
+            or radians by the stream's units.
         values: ``(n, channels)``.
 
     Raises:
-        ConfigError: the stream is neither.
+        ConfigError: the stream is neither, or its euler channels name no known convention.
     """
     v = np.atleast_2d(np.asarray(values, np.float64))
     ch = list(info.channels)
     if info.kind == "euler" and len(ch) >= 3:
+        names = tuple(c.lower() for c in ch[:3])
+        if names == EULER_W3C:
+            sign = np.array([1.0, 1.0, 1.0])
+        elif names == EULER_ANDROID:
+            sign = np.array([-1.0, -1.0, 1.0])
+        else:
+            raise ConfigError(f"stream {info.name}: euler angles {', '.join(ch[:3])} are of no known convention"
+                              f" (expected {', '.join(EULER_W3C)} (W3C) or {', '.join(EULER_ANDROID)} (Android))")
         deg = all(u == "deg" for u in info.units[:3])
-        ang = v[:, :3]
+        ang = v[:, :3] * sign
         ok = np.all(np.isfinite(ang), axis=1)
         q = np.full((len(v), 4), np.nan)
         if ok.any():
@@ -269,21 +324,25 @@ def attitude_quaternions(info: StreamInfo, values: np.ndarray) -> np.ndarray:
             q = np.where((n > 1e-9)[:, None], q / n[:, None], np.nan)
     else:
         raise ConfigError(f"stream {info.name} ({info.kind}: {', '.join(ch)}) is not an attitude"
-                          " (euler alpha, beta, gamma or a w, x, y, z quaternion)")
+                          " (euler alpha, beta, gamma or azimuth, pitch, roll, or a w, x, y, z quaternion)")
     return quat_mul(Z_UP_TO_Y_UP, q)
 
 
 class _TouchState:
-    """Which touches are down (by id), from touch rows (phase, id, ...)."""
+    """Which touches are down (by id), from touch rows (phase, id, ...); rows with a phase other than
+    0-3 change nothing and are counted (``unknown``)."""
 
     def __init__(self) -> None:
         self.down: set[float] = set()
+        self.unknown = 0
 
     def apply(self, phase: float, ident: float) -> bool:
         if phase in (0.0, 1.0):
             self.down.add(ident)
         elif phase in (2.0, 3.0):
             self.down.discard(ident)
+        else:
+            self.unknown += 1
         return bool(self.down)
 
 
@@ -301,7 +360,8 @@ def touch_columns(channels: Sequence[str]) -> tuple[int, int | None]:
 
 def touch_changes(t: np.ndarray, values: np.ndarray, channels: Sequence[str] = ("phase", "id")
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """A touch stream's rows as (times, held after each row).
+    """A touch stream's rows as (times, held after each row); a row whose phase is not 0-3 changes
+    nothing (:func:`unknown_touch_phases` counts them).
 
     Raises:
         ConfigError: ``channels`` has no ``phase``.
@@ -312,6 +372,17 @@ def touch_changes(t: np.ndarray, values: np.ndarray, channels: Sequence[str] = (
     ids = v[:, i].tolist() if i is not None else [0.0] * len(v)
     held = np.array([st.apply(float(a), float(b)) for a, b in zip(v[:, p].tolist(), ids)], bool)
     return np.asarray(t, np.float64), held
+
+
+def unknown_touch_phases(values: np.ndarray, channels: Sequence[str] = ("phase", "id")) -> int:
+    """How many touch rows have a phase other than 0-3 (ignored by :func:`touch_changes`).
+
+    Raises:
+        ConfigError: ``channels`` has no ``phase``.
+    """
+    p, _ = touch_columns(channels)
+    phase = np.atleast_2d(np.asarray(values, np.float64))[:, p]
+    return int((~np.isin(phase, (0.0, 1.0, 2.0, 3.0))).sum())
 
 
 def _phone_device(reader: Any, device: str | None) -> tuple[str, StreamInfo]:
@@ -365,6 +436,9 @@ def session_track(reader: Any, device: str | None = None) -> PhoneTrack:
     dropped = int((~keep).sum())
     if dropped:
         notes.append(f"{dropped} attitude sample(s) without values skipped")
+    unordered = int((~inc).sum())
+    if unordered:
+        notes.append(f"{unordered} attitude sample(s) out of order or at a repeated time skipped")
     touch_name = f"{dev}/touch"
     tt, th = np.zeros(0), np.zeros(0, bool)
     held_throughout = True
@@ -375,6 +449,10 @@ def session_track(reader: Any, device: str | None = None) -> PhoneTrack:
             tt, th = touch_changes((np.asarray(tbt.t_bus_ns, np.int64)[order] - origin) / 1e9,
                                    np.asarray(tbt.values)[order], reader.streams[touch_name].channels)
             held_throughout = False
+            unknown = unknown_touch_phases(tbt.values, reader.streams[touch_name].channels)
+            if unknown:
+                notes.append(f"{unknown} touch row(s) of {touch_name} with a phase other than 0-3 (start, move,"
+                             " end, cancel) ignored")
     if held_throughout:
         notes.append(f"no touches recorded ({touch_name} {'is empty' if touch_name in reader.streams else 'absent'}):"
                      " the phone counts as held throughout")
@@ -383,8 +461,34 @@ def session_track(reader: Any, device: str | None = None) -> PhoneTrack:
 
 
 # ------------------------------------------------------------------------------------------------ outputs
+def probe_writable(path: str | None, flag: str) -> None:
+    """Check before a performance that an output file can be written: it is opened for appending
+    (created, and removed again, when it does not exist yet; an existing file is left as it is).
+
+    Args:
+        path: the output (None: nothing to check).
+        flag: its option, for the message.
+
+    Raises:
+        ConfigError: it cannot be opened for writing.
+    """
+    if not path:
+        return
+    existed = os.path.lexists(path)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NONBLOCK, 0o666)
+    except OSError as exc:
+        raise ConfigError(f"{flag} {path}: cannot write it ({exc.strerror or exc})") from None
+    os.close(fd)
+    if not existed:
+        try:
+            os.remove(path)
+        except OSError:
+            log.debug("could not remove the probe of %s", path)
+
+
 def parse_host_port(text: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``[v6]:PORT`` for IPv6) as (host, port).
+    """``HOST:PORT`` (``[v6]:PORT`` for IPv6) as (host, port); the port in ASCII digits.
 
     Raises:
         ConfigError: not of that form.
@@ -393,7 +497,8 @@ def parse_host_port(text: str) -> tuple[str, int]:
     host, sep, port = s.rpartition(":")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536 or (":" in host and "[" not in s):
+    digits = port.isascii() and port.isdigit()          # isdigit alone takes '²' and '٣'
+    if not sep or not host or not digits or not 0 < int(port) < 65536 or (":" in host and "[" not in s):
         raise ConfigError(f"--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not {text!r}")
     return host, int(port)
 
@@ -401,8 +506,10 @@ def parse_host_port(text: str) -> tuple[str, int]:
 class VmcSender:
     """One VMC bundle per frame over UDP to ``HOST:PORT`` (``retarget.vmc.VmcEncoder``): the skeleton's
     joints that have a Unity name, local positions = the skeleton's offsets, local rotations = the
-    frame's, root = the frame's root position and joint 0's rotation. Send errors are counted (and
-    the first logged), never raised.
+    frame's. The root is the character's ground point: the hips' position at height 0 and the heading
+    (yaw about +Y) of their rotation; the hips (joint 0) are sent relative to it (the rest of their
+    rotation, and their height), so a receiver composing root and hips turns the character once. Send
+    errors are counted (and the first logged), never raised.
 
     Args:
         target: ``HOST:PORT``.
@@ -426,16 +533,38 @@ class VmcSender:
         self.index = [i for i, n in enumerate(skeleton.names) if n in unity]
         self.names = [unity[skeleton.names[i]] for i in self.index]
         self.local_pos = np.asarray(skeleton.offsets, np.float64)[self.index]
+        self.hips_offset = np.asarray(skeleton.offsets[0], np.float64)
         self.encoder = VmcEncoder(self.names)
         self.sent = 0
         self.errors = 0
         self.first_error: str | None = None
 
+    def root_and_hips(self, frame: PuppetFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The frame's root (position, rotation) and the hips relative to it (position, rotation).
+
+        Raises:
+            ValueError: a frame without finite hips.
+        """
+        q_hips = np.asarray(frame.rotations[0], np.float64)
+        p_hips = np.asarray(frame.root_pos, np.float64) + self.hips_offset
+        if not (np.isfinite(q_hips).all() and np.isfinite(p_hips).all()):
+            raise ValueError("a VMC frame needs finite values")
+        heading, tilt = split_heading(q_hips)             # q_hips = yaw(heading) * tilt
+        root_rot = yaw_quat(float(heading))
+        root_pos = np.array([p_hips[0], 0.0, p_hips[2]])
+        return root_pos, root_rot, quat_rotate(quat_conj(root_rot), p_hips - root_pos), tilt
+
     def send(self, frame: PuppetFrame) -> bool:
         """Send one frame; False (counted) when it could not be encoded or sent."""
         try:
-            data = self.encoder.encode(self.local_pos, frame.rotations[self.index], frame.root_pos,
-                                       frame.rotations[0], frame.t)
+            root_pos, root_rot, hips_pos, hips_rot = self.root_and_hips(frame)
+            local_pos, local_rot = self.local_pos, frame.rotations[self.index]
+            if self.index and self.index[0] == 0:
+                local_pos, local_rot = local_pos.copy(), np.array(local_rot, np.float64)
+                local_pos[0], local_rot[0] = hips_pos, hips_rot
+            else:                                         # no hips bone: the root carries their pose
+                root_pos, root_rot = root_pos + quat_rotate(root_rot, hips_pos), quat_mul(root_rot, hips_rot)
+            data = self.encoder.encode(local_pos, local_rot, root_pos, root_rot, frame.t)
             self.sock.sendto(data, self.address)
         except (OSError, ValueError) as exc:
             self.errors += 1
@@ -613,6 +742,11 @@ class PuppetFollower(Subscriber):
     def t_s(self) -> float:
         """Seconds of phone time followed so far."""
         return self.run.duration
+
+    @property
+    def unknown_touches(self) -> int:
+        """Touch rows applied so far whose phase was not 0-3 (ignored)."""
+        return self._touch.unknown
 
     def on_item(self, item: Any) -> None:
         stream = item.stream

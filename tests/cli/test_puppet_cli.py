@@ -210,6 +210,8 @@ def test_malformed_trajectories(tmp_path, capsys, content, message):
     (["--session", "{walk}"], "is not a session file (not MCAP)"),
     (["--input", "{walk}", "--vmc", "localhost"], "--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not 'localhost'"),
     (["--input", "{walk}", "--vmc", "127.0.0.1:99999"], "--vmc expects HOST:PORT"),
+    (["--input", "{walk}", "--vmc", "localhost:\u00b2"], "--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not 'localhost:\u00b2'"),
+    (["--input", "{walk}", "--vmc", "localhost:\u0663\u0663"], "--vmc expects HOST:PORT"),
     (["--input", "{walk}", "--vmc", "no-such-host.invalid:9"], "--vmc no-such-host.invalid:9: cannot resolve"),
     (["--input", "{walk}", "--rate", "0"], "--rate must be a frame rate in Hz between 0 and 1000, not 0.0"),
     (["--input", "{walk}", "--rate", "nan"], "--rate must be a frame rate"),
@@ -231,6 +233,91 @@ def test_bad_arguments_are_one_line(tmp_path, capsys, untouched, argv, message):
     lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith(("usage:", " "))]
     assert len(lines) == 1, err
     assert lines[0].startswith("perfcap: error: ") and message.format(**fill) in lines[0]
+
+
+def test_positions_near_the_float_limit_are_one_line(tmp_path, capsys):
+    p = tmp_path / "big308.csv"
+    p.write_text(f"{HEADER}\n0,0,1.3,0,1,0,0,0,1\n0.1,1.5e308,1.3,0,1,0,0,0,1\n")
+    code, out, err = run(capsys, "puppet", "--input", str(p))
+    assert code == 2 and out == ""
+    assert one_line(err) == (f"perfcap: error: {p} line 3, column px: '1.5e308' m is out of range"
+                             " (positions within +-100000 m)")
+
+
+def test_an_input_the_retargeter_refuses_is_one_line(tmp_path, capsys, monkeypatch):
+    from retarget.puppet import PuppetRetargeter
+
+    def refuse(self, inp):
+        raise ValueError("position must be a finite 3-vector,\n got array([inf, 1.3, 0.])")
+
+    monkeypatch.setattr(PuppetRetargeter, "step", refuse)
+    walk = walk_csv(tmp_path / "walk.csv", fs=5.0)
+    code, out, err = run(capsys, "puppet", "--input", walk)
+    assert code == 2 and out == ""
+    assert one_line(err) == (f"perfcap: error: {walk}: the puppet cannot follow the input at 0 s (position must"
+                             " be a finite 3-vector, got array([inf, 1.3, 0.]))")
+
+
+@pytest.mark.parametrize(("times", "message"), [
+    ("0,1e9", "the input spans 1e+09 s, 6e+10 frames at 60 Hz; at most 24 h (5184000 frames) is driven"),
+    ("0,1e300", "the input spans 1e+300 s, 6e+301 frames at 60 Hz"),
+])
+def test_huge_time_spans_are_one_line(tmp_path, capsys, times, message):
+    p = tmp_path / "long.csv"
+    p.write_text(HEADER + "\n" + "".join(f"{t},0,1.3,0,1,0,0,0,1\n" for t in times.split(",")))
+    code, out, err = run(capsys, "puppet", "--input", str(p))
+    assert code == 2 and out == ""
+    line = one_line(err)
+    assert line.startswith(f"perfcap: error: {p}: the input spans ") and message in line
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="needs /proc (a folder nobody can create files in)")
+@pytest.mark.parametrize("flag", ["-o", "--timeline"])
+def test_an_unwritable_output_is_found_before_the_performance(tmp_path, capsys, flag):
+    walk = walk_csv(tmp_path / "walk.csv", fs=5.0)
+    other = {"-o": ["--timeline", str(tmp_path / "tl.json")], "--timeline": ["-o", str(tmp_path / "x.bvh")]}[flag]
+    code, out, err = run(capsys, "puppet", "--input", walk, flag, "/proc/perfcap-out", *other)
+    assert code == 2 and out == ""   # nothing was performed
+    assert one_line(err).startswith(f"perfcap: error: {flag} /proc/perfcap-out: cannot write it (")
+    assert not (tmp_path / "tl.json").exists() and not (tmp_path / "x.bvh").exists()
+
+
+def test_a_failed_bvh_still_writes_the_timeline_and_vice_versa(tmp_path, capsys, monkeypatch):
+    import retarget.bvh
+
+    walk = walk_csv(tmp_path / "walk.csv", fs=10.0)
+    bvh, tl = tmp_path / "walk.bvh", tmp_path / "walk.json"
+
+    def disk_full(path, clip, **kw):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(retarget.bvh, "write_bvh", disk_full)
+        code, out, err = run(capsys, "puppet", "--input", walk, "-o", str(bvh), "--timeline", str(tl))
+    assert code == 2
+    assert one_line(err) == f"perfcap: error: cannot write {bvh}: No space left on device"
+    assert f"timeline written to {tl}" in out and "BVH written" not in out
+    assert [e["state"] for e in json.loads(tl.read_text())] == ["RELEASED", "LOCOMOTION", "RELEASED"]
+
+    # the timeline's folder vanishes during the run: the BVH is still written
+    import capture.puppet_run
+
+    monkeypatch.setattr(capture.puppet_run, "probe_writable", lambda path, flag: None)
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    orig_run = capture.puppet_run.PuppetRun.step
+
+    def step_and_remove(self, inp):
+        if gone.exists():
+            gone.rmdir()
+        return orig_run(self, inp)
+
+    monkeypatch.setattr(capture.puppet_run.PuppetRun, "step", step_and_remove)
+    bvh.unlink(missing_ok=True)
+    code, out, err = run(capsys, "puppet", "--input", walk, "-o", str(bvh), "--timeline", str(gone / "tl.json"))
+    assert code == 2
+    assert one_line(err) == f"perfcap: error: cannot write {gone / 'tl.json'}: No such file or directory"
+    assert f"BVH written to {bvh}" in out and read_bvh(bvh)[1].n_frames == 361
 
 
 # -- the demo's step ------------------------------------------------------------------------------------

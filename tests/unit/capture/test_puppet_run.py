@@ -7,11 +7,14 @@ same frames as the offline path."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
 import socket
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,11 +29,13 @@ from capture.puppet_run import (
     VmcSender,
     attitude_quaternions,
     parse_host_port,
+    probe_writable,
     read_trajectory,
     session_track,
     touch_changes,
+    unknown_touch_phases,
 )
-from capture.quat import quat_mul, quat_rotate
+from capture.quat import quat_conj, quat_mul, quat_rotate
 from capture.sample import (
     DeviceIdentity,
     Sample,
@@ -130,6 +135,8 @@ def test_trajectory_quaternions_within_tolerance_are_normalised(tmp_path):
     (f"{HEADER}\n0,0,1,0,1,0,0,0,2\n", "line 2, column touch: '2'; expected 0 or 1"),
     (f"{HEADER}\n0,0,nan,0,1,0,0,0,0\n", "line 2, column py: 'nan' is not a finite number"),
     (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,,,,1,0,0,0,0\n", "line 3: px,py,pz must be given on every row"),
+    (f"{HEADER}\n0,0,1.3,0,1,0,0,0,1\n0.1,1.5e308,1.3,0,1,0,0,0,1\n", "line 3, column px: '1.5e308' m is out of range"),
+    (f"{HEADER}\n0,0,1.3,-1e300,1,0,0,0,1\n", "line 2, column pz: '-1e300' m is out of range (positions within"),
 ])
 def test_bad_trajectories_are_one_line_config_errors(tmp_path, text, message):
     path = write_csv(tmp_path, text)
@@ -137,6 +144,34 @@ def test_bad_trajectories_are_one_line_config_errors(tmp_path, text, message):
         read_trajectory(path)
     assert message in str(info.value) and "\n" not in str(info.value)
     assert str(info.value).startswith(path)
+
+
+def test_positions_up_to_the_bound_are_accepted(tmp_path):
+    tr = read_trajectory(write_csv(tmp_path, f"{HEADER}\n0,0,1.3,0,1,0,0,0,1\n0.1,1e5,1.3,-1e5,1,0,0,0,1\n"))
+    assert tr.positions is not None and tr.positions[1].tolist() == [1e5, 1.3, -1e5]
+
+
+@pytest.mark.parametrize(("t", "message"), [
+    ([0.0, 1e9], "spans 1e+09 s, 6e+10 frames at 60 Hz; at most 24 h (5184000 frames) is driven"),
+    ([0.0, 1e300], "spans 1e+300 s, 6e+301 frames at 60 Hz"),
+    ([-1e308, 1e308], "spans inf s"),
+    ((np.arange(2000) * 50.0).tolist(), "the times look like milliseconds: write them in seconds"),
+])
+def test_huge_time_spans_are_config_errors_not_gigabytes(t, message):
+    tr = PhoneTrack("traj.csv", np.array(t), np.tile([1.0, 0, 0, 0], (len(t), 1)))
+    with pytest.raises(ConfigError) as info:
+        tr.resample(60.0)
+    assert str(info.value).startswith("traj.csv: the input spans ") and message in str(info.value)
+    assert ("milliseconds" in str(info.value)) == (len(t) > 2)
+    day = PhoneTrack("day.csv", np.array([0.0, 24 * 3600.0]), np.tile([1.0, 0, 0, 0], (2, 1)))
+    assert len(day.frame_times(1.0)) == 24 * 3600 + 1   # 24 h itself is driven
+
+
+def test_millisecond_times_get_a_note(tmp_path):
+    rows = "".join(f"{33 * k},0,1.3,0,1,0,0,0,1\n" for k in range(200))
+    tr = read_trajectory(write_csv(tmp_path, f"{HEADER}\n{rows}"))
+    assert any("median 33 s: if they are milliseconds, write them in seconds" in n for n in tr.notes)
+    assert not any("milliseconds" in n for n in read_trajectory(write_csv(tmp_path, walk_csv(), "w.csv")).notes)
 
 
 def test_missing_and_directory_inputs(tmp_path):
@@ -187,6 +222,57 @@ def test_deviceorientation_matches_scipys_intrinsic_zxy():
     assert np.abs(np.abs(np.sum(got * ref, axis=1)) - 1.0).max() < 1e-12
 
 
+ANDROID = stream("hi/attitude", "euler", ("azimuth", "pitch", "roll"), ("deg",) * 3)
+
+
+def test_android_orientation_angles_are_not_read_as_w3c():
+    # flat, top to the east: Android azimuth 90 (clockwise from north); W3C alpha -90 (counter-clockwise)
+    a = attitude_quaternions(ANDROID, np.array([[90.0, 0.0, 0.0]]))[0]
+    w = attitude_quaternions(EULER, np.array([[-90.0, 0.0, 0.0]]))[0]
+    assert abs(float(np.dot(a, w))) == pytest.approx(1.0, abs=1e-12)
+    assert axes(a)[1] == pytest.approx([1, 0, 0], abs=1e-12)       # the top points east (+X)
+    assert axes(a)[2] == pytest.approx([0, 1, 0], abs=1e-12)       # the screen faces up
+    # the same pose drives the puppet the same way: same heading on the retargeter
+    r = PuppetRetargeter()
+    f_a = r.step(PhoneInput(0.0, tuple(a.tolist()), True, None))
+    r.reset()
+    f_w = r.step(PhoneInput(0.0, tuple(w.tolist()), True, None))
+    assert f_a.root_pos == pytest.approx(f_w.root_pos, abs=1e-9)
+    assert np.abs(np.abs(np.sum(f_a.rotations * f_w.rotations, axis=-1)) - 1.0).max() < 1e-9
+    # top tilted down (Android pitch +30) is W3C beta -30; left edge up (roll +20) is gamma +20
+    assert attitude_quaternions(ANDROID, np.array([[0.0, 30.0, 20.0]])) == pytest.approx(
+        attitude_quaternions(EULER, np.array([[0.0, -30.0, 20.0]])), abs=1e-12)
+
+
+def test_android_angles_match_sensormanager_get_orientation():
+    """Android's getOrientation(R): azimuth = atan2(R[1], R[4]), pitch = asin(-R[7]), roll = atan2(-R[6], R[8])
+    of the device-to-ENU matrix R; the angles must give back R (in the Y-up world)."""
+    from scipy.spatial.transform import Rotation
+
+    from capture.puppet_run import Z_UP_TO_Y_UP
+
+    rot = Rotation.random(300, random_state=3)
+    m = rot.as_matrix().reshape(-1, 9)
+    ang = np.stack([np.arctan2(m[:, 1], m[:, 4]), np.arcsin(-m[:, 7]), np.arctan2(-m[:, 6], m[:, 8])], axis=1)
+    ref = quat_mul(Z_UP_TO_Y_UP, rot.as_quat()[:, [3, 0, 1, 2]])
+    rad = stream("hi/attitude", "euler", ("azimuth", "pitch", "roll"), ("rad",) * 3)
+    for info, v in ((rad, ang), (ANDROID, np.degrees(ang))):
+        got = attitude_quaternions(info, v)
+        assert np.abs(np.abs(np.sum(got * ref, axis=1)) - 1.0).max() < 1e-12
+
+
+@pytest.mark.parametrize("channels", [("roll", "pitch", "yaw"), ("pitch", "roll", "yaw"), ("x", "y", "z")])
+def test_euler_channels_of_no_known_convention(channels):
+    info = stream("ph/attitude", "euler", channels, ("deg",) * 3)
+    with pytest.raises(ConfigError) as exc:
+        attitude_quaternions(info, np.zeros((1, 3)))
+    assert f"euler angles {', '.join(channels)} are of no known convention" in str(exc.value)
+    assert "alpha, beta, gamma (W3C) or azimuth, pitch, roll (Android)" in str(exc.value)
+    run = PuppetRun(PuppetRetargeter(), rate=10.0)
+    with pytest.raises(ConfigError, match="no known convention"):
+        PuppetFollower("ph", info, run)
+
+
 def test_radian_euler_quaternion_channels_by_name_and_missing_values():
     rad = stream("ph/attitude", "euler", ("alpha", "beta", "gamma"), ("rad",) * 3)
     assert attitude_quaternions(rad, np.array([[math.pi / 2, 0, 0]])) == pytest.approx(
@@ -208,6 +294,14 @@ def test_touch_held_while_any_finger_is_down():
     t, held = touch_changes(np.arange(8) * 0.1, np.hstack([rows, np.zeros((8, 5))]))
     assert held.tolist() == [True, True, True, True, True, False, True, False]   # a move counts as down
     assert t.tolist() == pytest.approx(np.arange(8) * 0.1)
+
+
+def test_touch_rows_with_unknown_phases_are_counted():
+    rows = np.array([[0, 1], [7, 1], [math.nan, 1], [-1, 2], [2, 1], [3.5, 1]], float)
+    _, held = touch_changes(np.arange(6.0), rows)
+    assert held.tolist() == [True, True, True, True, False, False]
+    assert unknown_touch_phases(rows) == 4
+    assert unknown_touch_phases(rows[:1]) == 0 and unknown_touch_phases(rows[:, ::-1], ("id", "phase")) == 4
 
 
 def test_single_finger_touch_streams_have_no_id():
@@ -243,6 +337,55 @@ def test_follower_of_a_quaternion_phone_with_single_finger_touches(retargeter):
 
 
 # -- sessions -------------------------------------------------------------------------------------
+class FakeReader:
+    """A session reader's interface (path, streams, samples) over arrays, for samples a real phone
+    rarely sends."""
+
+    def __init__(self, streams: dict[str, tuple[StreamInfo, list[int], list[list[float]]]]) -> None:
+        self.path = "fake.mcap"
+        self.streams = {n: s for n, (s, _, _) in streams.items()}
+        self._data = {n: SimpleNamespace(t_bus_ns=np.array(t, np.int64), values=np.array(v, np.float64))
+                      for n, (_, t, v) in streams.items()}
+
+    def samples(self, name: str) -> SimpleNamespace:
+        return self._data[name]
+
+
+def test_session_track_counts_unordered_attitude_and_unknown_touch_phases():
+    ident = DeviceIdentity("phone", "ph")
+    att = StreamInfo("ph/attitude", "euler", ("alpha", "beta", "gamma"), ("deg",) * 3, 20.0, ident)
+    touch = StreamInfo("ph/touch", "touch", ("phase", "id"), ("1", "1"), None, ident)
+    t_att = [0, 50, 100, 100, 80, 150, 200, 120, 250]                     # a repeat and two late samples (ms)
+    vals = [[0.0, 10.0, 0.0]] * 4 + [[math.nan, 0.0, 0.0]] + [[0.0, 10.0, 0.0]] * 4   # one without values
+    reader = FakeReader({
+        "ph/attitude": (att, [t * 1_000_000 for t in t_att], vals),
+        "ph/touch": (touch, [60_000_000, 70_000_000, 90_000_000, 200_000_000], [[0, 1], [9, 1], [-1, 1], [2, 1]]),
+    })
+    tr = session_track(reader)
+    assert tr.t.tolist() == [0.0, 0.05, 0.1, 0.15, 0.2, 0.25]
+    assert "1 attitude sample(s) without values skipped" in tr.notes
+    assert "2 attitude sample(s) out of order or at a repeated time skipped" in tr.notes
+    assert ("2 touch row(s) of ph/touch with a phase other than 0-3 (start, move, end, cancel) ignored"
+            in tr.notes)
+    assert tr.touch.tolist() == [True, True, True, False]
+
+
+def test_follower_counts_unknown_touch_phases(retargeter):
+    ident = DeviceIdentity("phone", "ph")
+    att = StreamInfo("ph/attitude", "quat", ("w", "x", "y", "z"), ("1",) * 4, 50.0, ident)
+    touch = StreamInfo("ph/touch", "touch", ("phase", "id"), ("1", "1"), None, ident)
+    run = PuppetRun(fresh(retargeter), rate=50.0)
+    follower = PuppetFollower.for_device("ph", [att, touch], run)
+    bus = SampleBus()
+    bus.subscribe(follower, policy=Overflow.NEVER_DROP)
+    for k in range(20):
+        if k in (5, 6, 7):
+            bus.publish(Sample("ph/touch", k, 0, None, k * 20_000_000 + 1_000, ({5: 0.0, 6: 4.0, 7: 2.5}[k], 1.0)))
+        bus.publish(Sample("ph/attitude", k, 0, None, k * 20_000_000 + 3_000, (1.0, 0.0, 0.0, 0.0)))
+    bus.close()
+    assert follower.touches == 3 and follower.unknown_touches == 2 and run.frames == 20
+
+
 def test_session_track_from_a_recorded_page_phone(touched_session):
     reader = SessionReader(str(touched_session))
     tr = session_track(reader)
@@ -359,14 +502,59 @@ def test_vmc_bundles_reach_a_real_udp_receiver(tmp_path, retargeter, receiver):
     assert [g.t for g in got] == pytest.approx([f.t for f in frames], abs=1e-5)
     k = 100   # 3.3 s: walking
     f = frames[k]
-    # Unity axes: x mirrored, quaternions (x, -y, -z, w)
-    assert got[k].root[:3] == pytest.approx((-f.root_pos[0], f.root_pos[1], f.root_pos[2]), abs=1e-5)
+    # Unity axes: x mirrored, quaternions (x, -y, -z, w); the root is the hips' ground point
+    assert got[k].root[:3] == pytest.approx((-f.root_pos[0], 0.0, f.root_pos[2]), abs=1e-5)
     w, x, y, z = f.rotations[sk.index("LeftUpperLeg")]
     assert got[k].bones["LeftUpperLeg"][3:] == pytest.approx((x, -y, -z, w), abs=1e-6)
     assert got[k].bones["LeftUpperLeg"][:3] == pytest.approx(
         tuple(sk.offsets[sk.index("LeftUpperLeg")] * (-1, 1, 1)), abs=1e-6)
     with pytest.raises(ValueError, match="not kept"):
         run.clip()
+
+
+def from_unity(v: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A VMC pose (Unity: px py pz qx qy qz qw) back in perfcap's axes: position, (w, x, y, z)."""
+    return np.array([-v[0], v[1], v[2]]), np.array([v[6], v[3], -v[4], -v[5]])
+
+
+def test_vmc_root_is_the_ground_point_and_the_hips_turn_once(retargeter, receiver):
+    """Root * Hips recomposes the hips' world pose (a receiver applying the root turns the character
+    once, not twice), and the root stands on the ground with a heading only."""
+    sk = retargeter.skeleton
+    vmc = VmcSender(f"127.0.0.1:{receiver.port}", sk)
+    run = PuppetRun(fresh(retargeter), rate=30.0, vmc=vmc, keep_frames=False)
+    s = math.sqrt(0.5)
+    frames = [run.step(PhoneInput(k / 30, (s, 0.0, s, 0.0) if k > 15 else (1.0, 0.0, 0.0, 0.0), True,
+                                  (0.0, 1.3, 0.02 * k))) for k in range(60)]   # turned to +X (90 degrees)
+    # and a hips pose with every kind of rotation: heading 120 degrees, pitched and rolled
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_euler("YXZ", [120, 25, -15], degrees=True).as_quat()[[3, 0, 1, 2]]
+    rot = np.array(frames[-1].rotations, np.float64)
+    rot[0] = q
+    frames.append(dataclasses.replace(frames[-1], rotations=rot, root_pos=np.array([0.4, 0.8, -2.0])))
+    assert vmc.send(frames[-1])
+    vmc.close()
+    got = [decode_frame(d) for d in receiver.wait_for(len(frames))]
+    assert len(got) == len(frames) and vmc.errors == 0
+    for f, g in zip(frames, got, strict=True):
+        root_p, root_q = from_unity(g.root)
+        hips_p, hips_q = from_unity(g.bones["Hips"])
+        pos, world = sk.fk(f.root_pos, f.rotations, world_rotations=True)
+        assert root_p[1] == 0.0 and root_p[[0, 2]] == pytest.approx(pos[0][[0, 2]], abs=1e-5)
+        assert root_q[[1, 3]] == pytest.approx([0.0, 0.0], abs=1e-7)                # a heading about +Y only
+        assert root_p + quat_rotate(root_q, hips_p) == pytest.approx(pos[0], abs=1e-5)
+        assert abs(float(np.dot(quat_mul(root_q, hips_q), world[0]))) == pytest.approx(1.0, abs=1e-6)
+        # the other bones are unchanged: local rotations as the frame's
+        w, x, y, z = f.rotations[sk.index("Spine")]
+        assert g.bones["Spine"][3:] == pytest.approx((x, -y, -z, w), abs=1e-6)
+    # the tilted hips: the root carries the 120 degree heading, the hips only their pitch and roll
+    root_q, hips_q = from_unity(got[-1].root)[1], from_unity(got[-1].bones["Hips"])[1]
+    assert abs(root_q[0]) == pytest.approx(math.cos(math.radians(60)), abs=1e-6)
+    tilt = Rotation.from_quat(hips_q[[1, 2, 3, 0]]).as_euler("YXZ", degrees=True)
+    assert tilt == pytest.approx([0.0, 25.0, -15.0], abs=1e-4)
+    assert quat_mul(quat_conj(root_q), q) == pytest.approx(hips_q, abs=1e-6) or quat_mul(
+        quat_conj(root_q), q) == pytest.approx(-hips_q, abs=1e-6)
 
 
 def test_vmc_send_errors_are_counted_not_raised(retargeter):
@@ -385,10 +573,25 @@ def test_host_port(text, want):
     assert parse_host_port(text) == want
 
 
-@pytest.mark.parametrize("text", ["nohost", ":123", "host:", "host:0", "host:70000", "::1:9000", "host:abc", ""])
+@pytest.mark.parametrize("text", ["nohost", ":123", "host:", "host:0", "host:70000", "::1:9000", "host:abc", "",
+                                  "localhost:\u00b2", "localhost:\u0663\u0663", "localhost:\uff19\uff10"])
 def test_bad_host_port(text, retargeter):
     with pytest.raises(ConfigError, match="--vmc expects HOST:PORT"):
         VmcSender(text, retargeter.skeleton)
+
+
+def test_probe_writable_leaves_files_as_they_were(tmp_path):
+    new = tmp_path / "new.bvh"
+    probe_writable(str(new), "-o")
+    assert not new.exists()
+    old = tmp_path / "old.bvh"
+    old.write_text("keep me")
+    probe_writable(str(old), "-o")
+    assert old.read_text() == "keep me"
+    probe_writable(None, "-o")
+    if os.path.isdir("/proc"):
+        with pytest.raises(ConfigError, match=r"^-o /proc/perfcap-x\.bvh: cannot write it \("):
+            probe_writable("/proc/perfcap-x.bvh", "-o")
 
 
 def test_unresolvable_vmc_host(retargeter):
