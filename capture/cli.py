@@ -1164,7 +1164,6 @@ def cmd_puppet(args: argparse.Namespace) -> int:
 
 def _puppet_live(args: argparse.Namespace, spec: Any, run: Any) -> tuple[str, int, list[str]]:
     """``--phone``: the device on a bus, followed until Ctrl-C, ``--duration`` or its end."""
-    from capture.bus import Overflow
     from capture.pipeline import Capture
     from capture.puppet_run import PuppetFollower
 
@@ -1172,7 +1171,7 @@ def _puppet_live(args: argparse.Namespace, spec: Any, run: Any) -> tuple[str, in
     try:
         dev = cap.devices[0]
         follower = PuppetFollower.for_device(dev.name, dev.streams, run, hold=True if args.hold else None)
-        cap.subscribe(follower, policy=Overflow.NEVER_DROP, name="puppet")
+        cap.add_processor(follower, name="puppet")   # follows the phone, publishes <device>/puppet
     except BaseException:
         cap.stop()
         raise

@@ -681,11 +681,16 @@ class PuppetRun:
 
 # ------------------------------------------------------------------------------------------------ live
 class PuppetFollower(Subscriber):
-    """Drives a :class:`PuppetRun` from a phone's live samples on the bus.
+    """Drives a :class:`PuppetRun` from a phone's live samples on the bus, and puts the poses back on it.
 
     Frames are stepped on a fixed-rate grid of bus time starting at the first attitude sample: each
     attitude sample steps every grid time up to its own, the orientation slerped from the sample before.
     Touch samples queue touch changes, applied at the first frame at or after their time.
+
+    As a processor (``Capture.add_processor``) it publishes the pose stream ``<device>/puppet`` (kind
+    ``pose``): one sample per frame at the frame's bus time, values the root position (``root.x/y/z``, m)
+    then each joint's local rotation (``<joint>.w/x/y/z``), so recorders, dashboards and bridges get the
+    character like any other stream.
 
     Args:
         device: the phone's device name.
@@ -721,6 +726,21 @@ class PuppetFollower(Subscriber):
         self.skipped = 0
         self.errors = 0
         self.first_error: str | None = None
+        sk = run.retargeter.skeleton
+        channels = ("root.x", "root.y", "root.z", *(f"{j}.{c}" for j in sk.names for c in "wxyz"))
+        self.pose = StreamInfo(f"{device}/puppet", "pose", channels, ("m",) * 3 + ("1",) * (4 * sk.n_joints),
+                               run.rate, attitude.device)
+        self._publish: Any = None
+        self.published = 0
+
+    def output_streams(self) -> list[StreamInfo]:
+        """The pose stream this follower publishes once bound (see the class)."""
+        return [self.pose]
+
+    def bind(self, publish: Any) -> None:
+        """Set the bus's publish callable (``Capture.add_processor`` does)."""
+        self._publish = publish
+        self.publishes = True          # drained before the other subscribers when the bus closes
 
     @classmethod
     def for_device(cls, device: str, streams: Sequence[StreamInfo], run: PuppetRun, *,
@@ -794,9 +814,14 @@ class PuppetFollower(Subscriber):
         assert self.origin_ns is not None
         inp = PhoneInput((g_ns - self.origin_ns) / 1e9, tuple(q.tolist()), self.hold or self._held, None)
         try:
-            self.run.step(inp)
+            frame = self.run.step(inp)
         except ValueError as exc:
             self.on_error(exc)
+            return
+        if self._publish is not None:
+            values = (*frame.root_pos.tolist(), *np.asarray(frame.rotations, np.float64).ravel().tolist())
+            self._publish(Sample(self.pose.name, self.published, g_ns, None, g_ns, values))
+            self.published += 1
 
     def on_error(self, exc: BaseException) -> None:
         self.errors += 1

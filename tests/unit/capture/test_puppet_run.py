@@ -655,3 +655,41 @@ def test_follower_without_touch_stream_holds_and_needs_an_attitude(untouched_ses
     assert run.frames == math.floor(session_track(reader).duration * 30 + 1e-9) + 1
     with pytest.raises(ConfigError, match="has no attitude stream"):
         PuppetFollower.for_device("phone", [s for s in streams if not s.name.endswith("attitude")], run)
+
+
+def test_follower_as_a_processor_puts_the_pose_stream_on_the_bus(untouched_session, retargeter):
+    # the live path: the follower added as a processor publishes <device>/puppet, one sample per frame at
+    # the frame's bus time, root then local rotations, equal to the frames it stepped
+    from capture.bus import Subscriber
+
+    class Keep(Subscriber):
+        def __init__(self) -> None:
+            self.items: list = []
+
+        def on_item(self, item) -> None:
+            if item.stream == "phone/puppet":
+                self.items.append(item)
+
+    reader = SessionReader(str(untouched_session))
+    run = PuppetRun(fresh(retargeter), rate=60.0)
+    follower = PuppetFollower.for_device("phone", list(reader.streams.values()), run)
+    (pose,) = follower.output_streams()
+    n = retargeter.skeleton.n_joints
+    assert pose.name == "phone/puppet" and pose.kind == "pose" and len(pose.channels) == 3 + 4 * n
+    assert pose.channels[:4] == ("root.x", "root.y", "root.z", f"{retargeter.skeleton.names[0]}.w")
+    bus = SampleBus()
+    keep = Keep()
+    bus.subscribe(keep, policy=Overflow.NEVER_DROP)
+    follower.bind(bus.publish)
+    bus.subscribe(follower, policy=Overflow.NEVER_DROP)
+    publish_session(bus, reader, ["phone/attitude"], batch=5)
+    bus.close()
+    assert len(keep.items) == run.frames == follower.published > 100
+    clip = run.clip()
+    values = np.array([s.values for s in keep.items])
+    np.testing.assert_array_equal(values[:, :3], clip.root_pos)
+    rot = values[:, 3:].reshape(-1, n, 4)                   # the clip holds them normalised
+    np.testing.assert_allclose(np.abs(np.sum(rot * clip.rotations, axis=-1)), 1.0, atol=1e-9)
+    t = np.array([s.t_bus_ns for s in keep.items])
+    np.testing.assert_allclose(np.diff(t), 1e9 / 60, atol=1)
+    assert [s.seq for s in keep.items] == list(range(len(keep.items)))
