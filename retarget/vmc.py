@@ -50,7 +50,7 @@ def to_unity_quaternion(q: np.ndarray) -> np.ndarray:
     return np.stack([q[..., 1], -q[..., 2], -q[..., 3], q[..., 0]], axis=-1)
 
 
-def _message(address: str, args: list[object]) -> OscMessage:
+def _message(address: str, args: list[str | int | float]) -> OscMessage:
     b = OscMessageBuilder(address=address)
     for a in args:
         if isinstance(a, str):
