@@ -8,9 +8,9 @@ import json
 
 import numpy as np
 import pytest
+from cli_helpers import run
 
 from capture.calibration_store import CalibrationStore
-from capture.cli import main
 from capture.pipeline import CALIBRATION_KEY, Capture
 from capture.player import replay_session
 from capture.sample import DeviceIdentity
@@ -20,12 +20,6 @@ from sim_devices.frames import WavingSource
 from sim_devices.serial_sim import PtySerialDevice
 
 BIAS_DPS = (0.8, -0.5, 0.3)
-
-
-def run(capsys, *argv):
-    code = main(list(argv))
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
 
 
 def test_gyro_calibration_is_measured_stored_and_shown(capsys, tmp_path):

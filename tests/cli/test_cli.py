@@ -9,17 +9,11 @@ import subprocess
 import sys
 
 import pytest
+from cli_helpers import run
 
 from capture.cli import main
 
 FAST = "realtime=false&duration=2"
-
-
-def run(capsys, *argv):
-    code = main(list(argv))
-    o = capsys.readouterr()
-    assert "Traceback" not in o.err and "Traceback" not in o.out
-    return code, o.out, o.err
 
 
 @pytest.fixture

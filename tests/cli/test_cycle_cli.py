@@ -13,27 +13,14 @@ import sys
 
 import numpy as np
 import pytest
+from cli_helpers import one_line, run
 
 import cycles
-from capture.cli import main
 from sim_devices.loops import jittered_loops
 from sim_devices.motion import WavingMotion
 
 KEYS = {"period_s", "loops", "confidence", "cuts_s", "closure_error", "elapsed_ms"}
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-def run(capsys, *argv):
-    code = main(list(argv))
-    o = capsys.readouterr()
-    assert "Traceback" not in o.err and "Traceback" not in o.out
-    return code, o.out, o.err
-
-
-def one_line(err: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1, err
-    return lines[0]
 
 
 def write_csv(path, header, rows):

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import one_line, run
 
-from capture.cli import _demo_puppet, main
+from capture.cli import _demo_puppet
 from capture.pipeline import Capture
 from capture.session import SessionReader
 from retarget.bvh import read_bvh
@@ -24,22 +25,6 @@ from retarget.skeleton import humanoid
 from retarget.vmc import decode_frame
 
 HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
-
-
-def run(capsys, *argv):
-    try:
-        code = main(list(argv))
-    except SystemExit as exc:   # argparse's usage errors
-        code = exc.code
-    o = capsys.readouterr()
-    assert "Traceback" not in o.err and "Traceback" not in o.out
-    return code, o.out, o.err
-
-
-def one_line(err: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1, err
-    return lines[0]
 
 
 def walk_csv(path: Path, fs: float = 50.0) -> str:

@@ -8,21 +8,14 @@ import os
 import random
 
 import pytest
+from cli_helpers import run
 
-from capture.cli import main
 from capture.errors import ConfigError
 from capture.pipeline import Capture
 from capture.session import SessionReader
 from devices import open_device
 
 FAST = "realtime=false&duration=2"
-
-
-def run(capsys, *argv):
-    code = main(list(argv))
-    o = capsys.readouterr()
-    assert "Traceback" not in o.err and "Traceback" not in o.out, o.err
-    return code, o.out, o.err
 
 
 @pytest.mark.parametrize("name", ["my takes/take 1.mcap", "x%41.mcap", "a#b.mcap", "q?.mcap"])
@@ -92,7 +85,7 @@ def test_export_events_file_that_is_a_directory(tmp_path, capsys):
 
 def test_paced_replay_stopped_early_is_not_a_mismatch(tmp_path, capsys):
     s = tmp_path / "s.mcap"
-    Capture([f"a=synth://imu?rate=100&realtime=false&duration=3"], output=str(s), fsync=False).run(None)
+    Capture(["a=synth://imu?rate=100&realtime=false&duration=3"], output=str(s), fsync=False).run(None)
     code, out, err = run(capsys, "replay", str(s), "--duration", "0.4", "-q", "--json")
     assert code == 0, err
     r = json.loads(out)
