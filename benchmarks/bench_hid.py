@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 
 from _common import check, header, pct, summary  # noqa: E402
 from capture.bus import Overflow, Subscriber  # noqa: E402
-from capture.pipeline import Capture  # noqa: E402
+from capture.app.orchestrator import Capture  # noqa: E402
 from capture.sample import DeviceChunk, DeviceChunks, Sample, SampleBatch  # noqa: E402
 from capture.session import SessionReader  # noqa: E402
 from devices import open_device  # noqa: E402

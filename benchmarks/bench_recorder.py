@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 
 from _common import check, header, pct, run_sample_load, summary  # noqa: E402
 from capture.bus import Overflow, Subscriber  # noqa: E402
-from capture.pipeline import Capture  # noqa: E402
+from capture.app.orchestrator import Capture  # noqa: E402
 from capture.sample import Sample  # noqa: E402
 from capture.session import SessionReader  # noqa: E402
 from capture.summary import summarize  # noqa: E402

@@ -31,8 +31,8 @@ import numpy as np  # noqa: E402
 
 from _common import check, header, pct, summary  # noqa: E402
 from capture.bus import Overflow, Subscriber  # noqa: E402
-from capture.pipeline import Capture  # noqa: E402
-from capture.player import replay_session  # noqa: E402
+from capture.app.orchestrator import Capture  # noqa: E402
+from capture.app.replay import replay_session  # noqa: E402
 from capture.sample import DeviceChunk, Direction  # noqa: E402
 from capture.session import SessionReader  # noqa: E402
 

@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 import serial  # noqa: E402
 
 from _common import check, header, pct, summary  # noqa: E402
-from capture.pipeline import Capture  # noqa: E402
+from capture.app.orchestrator import Capture  # noqa: E402
 from capture.sample import Chunk, ChunkRun  # noqa: E402
 from devices import open_device  # noqa: E402
 from devices.base import ReconnectPolicy  # noqa: E402
@@ -104,7 +104,7 @@ def decode_throughput() -> None:
 
 
 def start_sim(link: str, rate: float, seconds: float, sent_log: str | None = None, seed: int = 1) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "capture.cli", "sim", "serial", "--kind", "witmotion", "--rate", str(rate),
+    cmd = [sys.executable, "-m", "capture.app.cli", "sim", "serial", "--kind", "witmotion", "--rate", str(rate),
            "--link", link, "--duration", str(seconds), "--seed", str(seed)]
     if sent_log:
         cmd += ["--sent-log", sent_log]

@@ -5,7 +5,7 @@
 
 Every party runs in its own process, started by this script with ``--role``:
 
-* the service: a ``Service`` (capture.serve) on 127.0.0.1 with TLS, default limits, no mDNS, recording
+* the service: a ``Service`` (capture.app.serve) on 127.0.0.1 with TLS, default limits, no mDNS, recording
   every message to a session, as ``perfcap serve --record`` runs it (``perfcap serve --port 0`` does not
   tell a script its port, so a small Python child builds the Service and prints its endpoints as JSON).
   Its CPU and memory are read from ``/proc/<pid>``, so only the service is counted;
@@ -85,7 +85,7 @@ def role_service(cfg: dict[str, Any]) -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from capture.bus import Overflow, Subscriber
     from capture.sample import Sample, SampleBatch
-    from capture.serve.service import ServeConfig, Service, ServiceThread
+    from capture.app.serve.service import ServeConfig, Service, ServiceThread
 
     osc_port = 0
     if cfg.get("osc"):
@@ -171,7 +171,7 @@ def role_sink(cfg: dict[str, Any]) -> None:
 
     from aiohttp import WSMsgType, web
 
-    from capture.serve.tls import ensure_certificate
+    from capture.app.serve.tls import ensure_certificate
 
     sys.setswitchinterval(0.0005)
     cert = ensure_certificate(Path(cfg["state_dir"]), ["127.0.0.1"])

@@ -7,7 +7,7 @@ for CI). ``loop=true`` starts over, shifting times by the take's length so they 
 Writes during the device's handshake are compared with the recorded TX chunks.
 
 Several replayed devices share one timeline when given the same ``start_ns`` (host time at which
-the recording's ``t0_ns`` is played); ``capture.player`` does this for whole sessions.
+the recording's ``t0_ns`` is played); ``capture.app.replay`` does this for whole sessions.
 """
 
 from __future__ import annotations

@@ -97,7 +97,7 @@ def _record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[floa
 
     import numpy as np
 
-    from capture.pipeline import Capture
+    from capture.app.orchestrator import Capture
     from capture.sample import Chunk, Direction
     from devices.codecs.phone_json import PageCodec
     from devices.transports.network import drop_hub, hub

@@ -2,7 +2,7 @@
 
 ``net://HUB/PROTOCOL/ID`` is the transport of a phone that *sends to* perfcap (the built-in page over
 a WebSocket, Sensor Logger's HTTP push, OSC or HyperIMU datagrams). The network side lives in
-``perfcap serve`` (``capture.serve.gateway``): it authenticates each message, stamps it with the host
+``perfcap serve`` (``capture.app.serve.gateway``): it authenticates each message, stamps it with the host
 monotonic time of its arrival and puts it, as one ``Chunk``, into the phone's ``Inbox`` on a ``Hub``.
 The phone's device reader takes chunks out through this transport, like bytes from a serial port.
 A phone that drops off (socket closed) makes ``read`` fail once its queued messages are drained, so

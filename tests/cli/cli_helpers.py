@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from capture.cli import main
+from capture.app.cli import main
 
 
 def run(capsys: Any, *argv: str) -> tuple[int, str, str]:

@@ -11,8 +11,8 @@ import pytest
 from cli_helpers import run
 
 from capture.calibration_store import CalibrationStore
-from capture.pipeline import CALIBRATION_KEY, Capture
-from capture.player import replay_session
+from capture.app.orchestrator import CALIBRATION_KEY, Capture
+from capture.app.replay import replay_session
 from capture.sample import DeviceIdentity
 from capture.session import SessionReader
 from devices.base import ReconnectPolicy

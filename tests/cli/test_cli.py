@@ -11,7 +11,7 @@ import sys
 import pytest
 from cli_helpers import run
 
-from capture.cli import main
+from capture.app.cli import main
 
 FAST = "realtime=false&duration=2"
 
@@ -148,14 +148,14 @@ def test_failed_device_is_reported_with_nonzero_exit(tmp_path, capsys):
 def test_console_script_and_demo_run_without_shared(tmp_path):
     """The demo, as a user runs it from a fresh clone: no hardware, no ../shared beside the cwd."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("PERFCAP_")}
-    p = subprocess.run([sys.executable, "-m", "capture.cli", "demo", "--duration", "1.5", "-q",
+    p = subprocess.run([sys.executable, "-m", "capture.app.cli", "demo", "--duration", "1.5", "-q",
                         "-o", str(tmp_path / "demo.mcap")], cwd=tmp_path, env=env, capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 0, p.stderr
     assert "all" in p.stdout and "equal the recorded ones" in p.stdout
     assert "Traceback" not in p.stderr
     assert "ERROR" not in p.stderr, p.stderr  # e.g. a subscriber failing on an item is logged, not raised
-    p2 = subprocess.run([sys.executable, "-m", "capture.cli", "info", str(tmp_path / "demo.mcap"), "--json"],
+    p2 = subprocess.run([sys.executable, "-m", "capture.app.cli", "info", str(tmp_path / "demo.mcap"), "--json"],
                         capture_output=True, text=True, timeout=60)
     s = json.loads(p2.stdout)
     assert {x["device"] for x in s["streams"]} == {"wrist", "ankle", "head", "hand", "pad", "pen", "phone"}  # hand: pty serial IMU; pad, pen: simulated HID; phone: the page over TLS + WebSocket

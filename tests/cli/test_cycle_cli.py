@@ -240,7 +240,7 @@ def test_demo_extracts_the_wrists_cycle(tmp_path):
     and writes the report and the loop beside the session."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("PERFCAP_")}
     session = tmp_path / "demo.mcap"
-    p = subprocess.run([sys.executable, "-m", "capture.cli", "demo", "--duration", "4", "-q", "-o", str(session)],
+    p = subprocess.run([sys.executable, "-m", "capture.app.cli", "demo", "--duration", "4", "-q", "-o", str(session)],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=180, check=False)
     assert p.returncode == 0, p.stderr
     assert "Traceback" not in p.stderr

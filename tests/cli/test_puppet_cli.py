@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from cli_helpers import one_line, run
 
-from capture.cli import _demo_puppet
-from capture.pipeline import Capture
+from capture.app.cli import _demo_puppet
+from capture.app.orchestrator import Capture
 from capture.session import SessionReader
 from retarget.bvh import read_bvh
 from retarget.skeleton import humanoid
@@ -285,19 +285,19 @@ def test_a_failed_bvh_still_writes_the_timeline_and_vice_versa(tmp_path, capsys,
     assert [e["state"] for e in json.loads(tl.read_text())] == ["RELEASED", "LOCOMOTION", "RELEASED"]
 
     # the timeline's folder vanishes during the run: the BVH is still written
-    import capture.puppet_run
+    import capture.app.puppet_run
 
-    monkeypatch.setattr(capture.puppet_run, "probe_writable", lambda path, flag: None)
+    monkeypatch.setattr(capture.app.puppet_run, "probe_writable", lambda path, flag: None)
     gone = tmp_path / "gone"
     gone.mkdir()
-    orig_run = capture.puppet_run.PuppetRun.step
+    orig_run = capture.app.puppet_run.PuppetRun.step
 
     def step_and_remove(self, inp):
         if gone.exists():
             gone.rmdir()
         return orig_run(self, inp)
 
-    monkeypatch.setattr(capture.puppet_run.PuppetRun, "step", step_and_remove)
+    monkeypatch.setattr(capture.app.puppet_run.PuppetRun, "step", step_and_remove)
     bvh.unlink(missing_ok=True)
     code, out, err = run(capsys, "puppet", "--input", walk, "-o", str(bvh), "--timeline", str(gone / "tl.json"))
     assert code == 2

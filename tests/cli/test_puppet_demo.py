@@ -9,7 +9,7 @@ import re
 
 import numpy as np
 
-from capture.cli import _demo_puppet
+from capture.app.cli import _demo_puppet
 from capture.session import SessionReader
 from retarget.bvh import read_bvh
 

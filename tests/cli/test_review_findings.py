@@ -11,7 +11,7 @@ import pytest
 from cli_helpers import run
 
 from capture.errors import ConfigError
-from capture.pipeline import Capture
+from capture.app.orchestrator import Capture
 from capture.session import SessionReader
 from devices import open_device
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.pipeline import Capture
-from capture.player import replay_session
+from capture.app.orchestrator import Capture
+from capture.app.replay import replay_session
 from capture.session import SessionReader
 
 pytestmark = pytest.mark.hil

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from capture.pipeline import Capture
-from capture.player import replay_session
+from capture.app.orchestrator import Capture
+from capture.app.replay import replay_session
 
 pytestmark = pytest.mark.hil
 

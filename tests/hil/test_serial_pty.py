@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from capture.errors import ConfigError, DeviceNotFoundError
-from capture.pipeline import Capture
-from capture.player import replay_session
+from capture.app.orchestrator import Capture
+from capture.app.replay import replay_session
 from capture.session import SessionReader
 from devices import open_device
 from devices.base import ReconnectPolicy
@@ -195,7 +195,7 @@ def test_loop_url_handler_round_trip():
 def test_sim_serial_cli_serves_a_port_that_perfcap_record_reads(tmp_path):
     link = str(tmp_path / "ttyWIT")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    with subprocess.Popen([sys.executable, "-m", "capture.cli", "sim", "serial", "--kind", "witmotion",
+    with subprocess.Popen([sys.executable, "-m", "capture.app.cli", "sim", "serial", "--kind", "witmotion",
                            "--rate", "100", "--link", link, "--duration", "20"],
                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                           env=env) as sim:
@@ -203,7 +203,7 @@ def test_sim_serial_cli_serves_a_port_that_perfcap_record_reads(tmp_path):
             path = sim.stdout.readline().strip()
             assert path == link and os.path.islink(link)
             out = str(tmp_path / "take.mcap")
-            r = subprocess.run([sys.executable, "-m", "capture.cli", "record", "-d",
+            r = subprocess.run([sys.executable, "-m", "capture.app.cli", "record", "-d",
                                 f"wrist=witmotion@serial://{link}?rate=100&device_clock=true", "-o", out,
                                 "--duration", "1.5"], capture_output=True, text=True, timeout=60, env=env)
             assert r.returncode == 0, r.stderr

@@ -8,8 +8,8 @@ import pytest
 
 from capture.clock import ManualClock
 from capture.errors import ConfigError, EndOfStream, SessionError
-from capture.pipeline import Capture
-from capture.player import ReplayVerifier, replay_session
+from capture.app.orchestrator import Capture
+from capture.app.replay import ReplayVerifier, replay_session
 from capture.session import SessionReader
 from devices import open_device
 

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from capture.player import replay_session
+from capture.app.replay import replay_session
 from capture.session import SessionReader
 
 
@@ -19,7 +19,7 @@ from capture.session import SessionReader
 def test_sigkill_loses_at_most_max_loss(tmp_path, max_loss):
     out = str(tmp_path / "killed.mcap")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "capture.cli", "record", "-q", "-d", "a=synth://imu?rate=200&jitter_ms=1",
+        [sys.executable, "-m", "capture.app.cli", "record", "-q", "-d", "a=synth://imu?rate=200&jitter_ms=1",
          "-d", "b=synth://imu?rate=100&device_clock=false&seed=2", "--duration", "60", "--max-loss", str(max_loss),
          "-o", out],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

@@ -17,9 +17,7 @@ import contextlib
 import json
 import logging
 import math
-import socket
 import threading
-import time
 import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -29,46 +27,14 @@ from typing import Any
 
 import pytest
 
-from capture.serve.gateway import Limits
-from capture.serve.service import ServeConfig, Service, ServiceThread
+from capture.app.serve.gateway import Limits
+from capture.app.serve.service import ServeConfig, Service, ServiceThread
 from sim_devices.phone_client import PhoneThread, SimPagePhone
 from sim_devices.phone_sim import page_hello
 
 log = logging.getLogger(__name__)
 
-#: The pairing token of every test service (a fixed token is never written to the state dir).
-TOKEN = "serve-tests-token-0123456789"
-
-
-class _Current:
-    """Sentinel: the service's current token."""
-
-
-CURRENT: Any = _Current()
-
-
-def wait_until(cond: Callable[[], Any], timeout: float = 10.0, what: str = "a condition") -> Any:
-    """Poll ``cond`` until it is truthy; returns its value.
-
-    Raises:
-        AssertionError: ``timeout`` passed first.
-    """
-    end = time.monotonic() + timeout
-    while True:
-        v = cond()
-        if v:
-            return v
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    """A port nobody listens on at the moment (UDP by default) on 127.0.0.1."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
+from serve_helpers import CURRENT, TOKEN, free_port, wait_until
 
 PhoneRunner = PhoneThread  # a simulated phone on its own event loop in a thread
 

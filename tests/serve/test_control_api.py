@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from capture import __version__
-from capture.player import replay_session
+from capture.app.replay import replay_session
 from capture.session import SessionReader
 
 ENDPOINTS = [

@@ -14,12 +14,12 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import TOKEN, wait_until
+from serve_helpers import TOKEN, wait_until
 
 from capture.errors import ConfigError
-from capture.serve.gateway import CLOSE_MALFORMED
-from capture.serve.security import AllowList, TokenStore
-from capture.serve.service import ServeConfig, Service
+from capture.app.serve.gateway import CLOSE_MALFORMED
+from capture.app.serve.security import AllowList, TokenStore
+from capture.app.serve.service import ServeConfig, Service
 from capture.session import SessionReader
 from sim_devices.phone_apps_sim import hyperimu_rows
 
@@ -100,7 +100,7 @@ def test_an_older_hyperimu_tcp_socket_closing_does_not_disconnect_the_phone(serv
 
 def test_serve_record_has_the_first_samples(tmp_path):
     out = tmp_path / "take.mcap"
-    p = subprocess.run([sys.executable, "-m", "capture.cli", "serve", "--port", "0", "--control-port", "-1",
+    p = subprocess.run([sys.executable, "-m", "capture.app.cli", "serve", "--port", "0", "--control-port", "-1",
                         "--no-mdns", "--state-dir", str(tmp_path / "st"), "--duration", "1.5", "-q",
                         "--record", str(out), "-d", "imu=synth://imu?rate=100&seed=3"],
                        capture_output=True, text=True, timeout=60, cwd=Path(__file__).parent)

@@ -29,7 +29,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect_sync
 
 from capture.errors import ConfigError
-from capture.serve.gateway import (
+from capture.app.serve.gateway import (
     CLOSE_MALFORMED,
     CLOSE_RATE,
     CLOSE_TOKEN,
@@ -37,9 +37,9 @@ from capture.serve.gateway import (
     CLOSE_TOO_MANY,
     Limits,
 )
-from capture.serve.security import TOKEN_FILE, AllowList, TokenStore
-from capture.serve.service import ServeConfig, Service
-from capture.serve.tls import CERT_FILE, KEY_FILE, ensure_certificate
+from capture.app.serve.security import TOKEN_FILE, AllowList, TokenStore
+from capture.app.serve.service import ServeConfig, Service
+from capture.app.serve.tls import CERT_FILE, KEY_FILE, ensure_certificate
 from capture.session import SessionReader
 from sim_devices.phone_client import send_udp
 from sim_devices.phone_sim import page_hello, page_messages

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.serve.security import TOKEN_FILE
-from capture.serve.tls import CERT_FILE
+from capture.app.serve.security import TOKEN_FILE
+from capture.app.serve.tls import CERT_FILE
 from capture.session import SessionReader
 
 ROOT = Path(__file__).resolve().parents[2]
-SERVE = [sys.executable, "-m", "capture.cli", "serve", "--port", "0", "--control-port", "0", "--no-mdns"]
+SERVE = [sys.executable, "-m", "capture.app.cli", "serve", "--port", "0", "--control-port", "0", "--no-mdns"]
 
 
 def _env(tmp_path: Path) -> dict[str, str]:

@@ -14,7 +14,7 @@ import pytest
 
 from capture.bus import Subscriber
 from capture.sample import Sample, SampleBatch
-from capture.serve.service import ServeConfig, Service, ServiceThread
+from capture.app.serve.service import ServeConfig, Service, ServiceThread
 from capture.session import SessionReader
 
 TOKEN = "browser-test-token-0123456789"
@@ -124,7 +124,7 @@ def test_page_from_the_service_streams_to_the_bus_over_tls(service, page, consol
     assert dev.kind == "phone" and "token" not in str(dev.options)
     raw = b"".join(c.data for c in r.raw_chunks(device))
     assert TOKEN.encode() not in raw, "the pairing token must never be recorded"
-    from capture.player import replay_session
+    from capture.app.replay import replay_session
 
     rep = replay_session(path, speed=0)
     assert rep.verification and rep.verification["equal"], rep.verification

@@ -1,4 +1,4 @@
-"""The built-in phone page (``capture/serve/static/phone.html``) in headless Chromium, against a small
+"""The built-in phone page (``capture/app/serve/static/phone.html``) in headless Chromium, against a small
 server written here that speaks the page protocol v1 (hello, welcome, data, ping/pong, close codes).
 
 This checks the page on its own; the end-to-end test through ``perfcap serve`` (TLS, devices, bus)
@@ -21,7 +21,7 @@ from aiohttp import WSMsgType, web
 if TYPE_CHECKING:
     from playwright.sync_api import Page
 
-PAGE = Path(__file__).resolve().parents[2] / "capture" / "serve" / "static" / "phone.html"
+PAGE = Path(__file__).resolve().parents[2] / "capture" / "app" / "serve" / "static" / "phone.html"
 TOKEN = "Zq3-pairing_token-7f"
 DEVICE = "phone-test"
 BIG_H = 2**53 + 1  # a host ns value a JS number cannot hold: the page must echo it digit for digit

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from capture.config import load_config
+from capture.app.config import load_config
 from capture.errors import ConfigError
 
 

@@ -3,8 +3,8 @@ its codec, clock sync and reader thread."""
 
 from __future__ import annotations
 
-from capture.cycle_follow import CycleFollower
-from capture.pipeline import Capture
+from capture.app.cycle_follow import CycleFollower
+from capture.app.orchestrator import Capture
 from cycles import Cycle
 from sim_devices.motion import WavingMotion
 

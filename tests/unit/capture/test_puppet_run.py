@@ -1,4 +1,4 @@
-"""The puppet's wiring (``capture.puppet_run``): trajectory CSVs read and checked line by line, resampling to
+"""The puppet's wiring (``capture.app.puppet_run``): trajectory CSVs read and checked line by line, resampling to
 a fixed rate (linear positions, slerped orientations, touch as last set), phone attitude streams turned into
 perfcap's Y-up world, touches of several fingers, recorded phone sessions (the page protocol through the real
 codec, device, clock sync and recorder), the state timeline and time per state, VMC bundles caught by a real
@@ -21,8 +21,8 @@ import pytest
 
 from capture.bus import Overflow, SampleBus
 from capture.errors import ConfigError
-from capture.pipeline import Capture
-from capture.puppet_run import (
+from capture.app.orchestrator import Capture
+from capture.app.puppet_run import (
     PhoneTrack,
     PuppetFollower,
     PuppetRun,
@@ -214,7 +214,7 @@ def test_deviceorientation_angles_become_the_y_up_world():
 def test_deviceorientation_matches_scipys_intrinsic_zxy():
     from scipy.spatial.transform import Rotation
 
-    from capture.puppet_run import Z_UP_TO_Y_UP
+    from capture.app.puppet_run import Z_UP_TO_Y_UP
 
     ang = np.random.default_rng(1).uniform([0, -180, -90], [360, 180, 90], (300, 3))
     ref = quat_mul(Z_UP_TO_Y_UP, Rotation.from_euler("ZXY", ang, degrees=True).as_quat()[:, [3, 0, 1, 2]])
@@ -249,7 +249,7 @@ def test_android_angles_match_sensormanager_get_orientation():
     of the device-to-ENU matrix R; the angles must give back R (in the Y-up world)."""
     from scipy.spatial.transform import Rotation
 
-    from capture.puppet_run import Z_UP_TO_Y_UP
+    from capture.app.puppet_run import Z_UP_TO_Y_UP
 
     rot = Rotation.random(300, random_state=3)
     m = rot.as_matrix().reshape(-1, 9)

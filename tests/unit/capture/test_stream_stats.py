@@ -3,7 +3,7 @@ device sends garbage for hours (each protocol-error event is counted per device,
 
 from __future__ import annotations
 
-from capture.pipeline import StreamStats
+from capture.app.orchestrator import StreamStats
 from capture.sample import DeviceEvent, EventKind, Sample
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError
-from capture.pipeline import Capture
-from capture.player import replay_session
+from capture.app.orchestrator import Capture
+from capture.app.replay import replay_session
 from capture.session import SessionReader
 from devices import open_device
 from devices.base import ReconnectPolicy

@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from capture.cli import main
+from capture.app.cli import main
 from capture.errors import ConfigError, DeviceNotFoundError
 from devices import open_device
 from devices.doctor import diagnose, rule_for, udev_rules

@@ -55,7 +55,7 @@ from collections.abc import Mapping
 
 from capture.errors import ConfigError
 
-PROFILE_DIR = Path(__file__).resolve().parent.parent / "config"
+PROFILE_DIR = Path(__file__).resolve().parents[2] / "config"
 
 
 @dataclass
@@ -93,7 +93,7 @@ class CalibrationSettings:
 
 @dataclass
 class ServeSettings:
-    """``perfcap serve`` (see ``capture.serve.service.ServeConfig``)."""
+    """``perfcap serve`` (see ``capture.app.serve.service.ServeConfig``)."""
 
     host: str = "0.0.0.0"          # address the phone endpoints listen on
     port: int = 8443               # phone page, WebSocket, Sensor Logger push (HTTPS)

@@ -28,12 +28,12 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from capture.clock import MONOTONIC, Clock
 from capture.sample import Chunk, Direction
-from capture.serve.security import AllowList, RateLimit, Rejections, TokenStore
+from capture.app.serve.security import AllowList, RateLimit, Rejections, TokenStore
 from devices.transports.network import Inbox
 
 log = logging.getLogger(__name__)
 
-#: WebSocket close codes the page understands (see capture/serve/static/phone.html). An oversized
+#: WebSocket close codes the page understands (see capture/app/serve/static/phone.html). An oversized
 #: message is closed by aiohttp itself with the standard 1009 (message too big).
 CLOSE_MALFORMED = 4400
 CLOSE_TOKEN = 4401
@@ -78,7 +78,7 @@ class GatewayStats:
 
 
 def page_html() -> bytes:
-    return resources.files("capture.serve").joinpath("static/phone.html").read_bytes()
+    return resources.files("capture.app.serve").joinpath("static/phone.html").read_bytes()
 
 
 class Gateway:

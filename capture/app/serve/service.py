@@ -30,11 +30,11 @@ from aiohttp import web
 from capture import __version__
 from capture.clock import MONOTONIC, Clock
 from capture.errors import CaptureError, ConfigError
-from capture.pipeline import Capture
-from capture.serve.discovery import Discovery, FoundService
-from capture.serve.gateway import CLOSE_TOKEN, Gateway, Limits
-from capture.serve.security import AllowList, TokenStore
-from capture.serve.tls import Certificate, ensure_certificate
+from capture.app.orchestrator import Capture
+from capture.app.serve.discovery import Discovery, FoundService
+from capture.app.serve.gateway import CLOSE_TOKEN, Gateway, Limits
+from capture.app.serve.security import AllowList, TokenStore
+from capture.app.serve.tls import Certificate, ensure_certificate
 from devices import DeviceSpec, ReconnectPolicy
 from devices.transports.network import Inbox, drop_hub, hub
 
@@ -368,7 +368,7 @@ class Service:
         Raises:
             ConfigError: a port is taken, or the certificate cannot be made.
         """
-        from capture.serve.control import control_app
+        from capture.app.serve.control import control_app
 
         cfg = self.config
         self._loop = asyncio.get_running_loop()

@@ -17,7 +17,7 @@ from urllib.parse import quote
 from capture.bus import Overflow, Subscriber
 from capture.clock import MONOTONIC, Clock
 from capture.errors import SessionError
-from capture.pipeline import Capture, CaptureReport
+from capture.app.orchestrator import Capture, CaptureReport
 import numpy as np
 
 from capture.sample import Sample, SampleBatch
@@ -145,7 +145,7 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     if orientation or (orientation is None and recorded_orient):
         from capture.calibration_store import parse_calibration_document
         from capture.errors import ConfigError
-        from capture.pipeline import CALIBRATION_KEY
+        from capture.app.orchestrator import CALIBRATION_KEY
 
         first = next(iter(recorded_orient.values()), None)
         flt = orientation_filter or (first.extra.get("filter") if first and first.extra else None) or "fusion"

@@ -90,7 +90,7 @@ def _live_line(cap: Any, elapsed: float) -> None:
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from capture.config import load_config
+    from capture.app.config import load_config
 
     overrides: dict[str, dict[str, Any]] = {"recorder": {}}
     if getattr(args, "max_loss", None) is not None:
@@ -113,7 +113,7 @@ def _check_duration(d: float | None) -> None:
 
 # ------------------------------------------------------------------------------------------------
 def cmd_record(args: argparse.Namespace) -> int:
-    from capture.pipeline import Capture
+    from capture.app.orchestrator import Capture
     from devices import parse_device_spec
 
     _check_duration(args.duration)
@@ -184,8 +184,8 @@ def _serve_config(ss: Any) -> Any:
     Raises:
         ConfigError: a phone name entry is malformed.
     """
-    from capture.serve.gateway import Limits
-    from capture.serve.service import ServeConfig
+    from capture.app.serve.gateway import Limits
+    from capture.app.serve.service import ServeConfig
 
     names = {}
     for item in (i.strip() for i in ss.phone_names.split(",")):
@@ -211,7 +211,7 @@ def _serve_config(ss: Any) -> Any:
 def cmd_serve(args: argparse.Namespace) -> int:
     import asyncio
 
-    from capture.serve.service import Service
+    from capture.app.serve.service import Service
     from devices import parse_device_spec
 
     _check_duration(args.duration)
@@ -219,8 +219,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     cfg = _serve_config(s.serve)
     specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
     if args.rotate_token:
-        from capture.serve.security import TokenStore
-        from capture.serve.service import default_state_dir
+        from capture.app.serve.security import TokenStore
+        from capture.app.serve.service import default_state_dir
 
         TokenStore(Path(cfg.state_dir) if cfg.state_dir else default_state_dir()).rotate()
     service = Service(cfg, specs, reconnect=s.reconnect_policy(),
@@ -331,7 +331,7 @@ def _print_capture(report: Any, as_json: bool) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from capture.player import replay_session
+    from capture.app.replay import replay_session
 
     speed = 0.0 if args.fast else args.speed
     if speed is None:
@@ -783,7 +783,7 @@ def _start_serial_sim(duration: float) -> tuple[Any, str] | None:
         out("  (no simulated serial port on this OS: ptys are POSIX only)")
         return None
     link = os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-port-"), "ttyWT901")
-    cmd = [sys.executable, "-m", "capture.cli", "sim", "serial", "--kind", "witmotion", "--rate", "200",
+    cmd = [sys.executable, "-m", "capture.app.cli", "sim", "serial", "--kind", "witmotion", "--rate", "200",
            "--seed", "4", "--link", link, "--unplug-every", str(DEMO_UNPLUG_AT), "--unplug-for", str(DEMO_UNPLUG_FOR),
            "--duration", str(duration + 30)]
     try:
@@ -820,7 +820,7 @@ def _start_demo_service(devices: list[str], path: str, overwrite: bool) -> tuple
     """The demo's devices in a ``perfcap serve`` service on loopback, recording from the start."""
     import secrets
 
-    from capture.serve.service import ServeConfig, Service, ServiceThread
+    from capture.app.serve.service import ServeConfig, Service, ServiceThread
 
     cfg = ServeConfig(host="127.0.0.1", port=0, control_port=-1, mdns=False,
                       state_dir=tempfile.mkdtemp(prefix="perfcap-demo-serve-"), token=secrets.token_urlsafe(18),
@@ -855,7 +855,7 @@ def _start_demo_phone(service: Any, duration: float) -> Any:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from capture.player import replay_session
+    from capture.app.replay import replay_session
     from capture.session import SessionReader
     from capture.summary import summarize
 
@@ -979,7 +979,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def _demo_follower(cap: Any) -> tuple[Any, list[tuple[float, Any]]] | None:
     """Streaming cycle extraction on the live bus while the demo runs: when did a cycle first come,
     and how often did it improve."""
-    from capture.cycle_follow import CycleFollower
+    from capture.app.cycle_follow import CycleFollower
 
     got: list[tuple[float, Any]] = []
     t0 = time.monotonic()
@@ -1076,7 +1076,7 @@ def _puppet_outputs(run: Any, args: argparse.Namespace) -> tuple[list[str], list
 
 
 def cmd_puppet(args: argparse.Namespace) -> int:
-    from capture.puppet_run import (
+    from capture.app.puppet_run import (
         PuppetRun,
         VmcSender,
         check_rate,
@@ -1164,8 +1164,8 @@ def cmd_puppet(args: argparse.Namespace) -> int:
 
 def _puppet_live(args: argparse.Namespace, spec: Any, run: Any) -> tuple[str, int, list[str]]:
     """``--phone``: the device on a bus, followed until Ctrl-C, ``--duration`` or its end."""
-    from capture.pipeline import Capture
-    from capture.puppet_run import PuppetFollower
+    from capture.app.orchestrator import Capture
+    from capture.app.puppet_run import PuppetFollower
 
     cap = Capture([spec], meta={"command": " ".join(sys.argv)})
     try:
@@ -1207,7 +1207,7 @@ def _demo_puppet(reader: Any) -> None:
     A failure is one line: the demo goes on."""
     import numpy as np
 
-    from capture.puppet_run import PuppetRun, session_track
+    from capture.app.puppet_run import PuppetRun, session_track
     from retarget.bvh import write_bvh
 
     path = os.path.join(os.path.dirname(os.path.abspath(reader.path)), "puppet.bvh")
@@ -1331,7 +1331,7 @@ def _collect_imu(spec: Any, seconds: float, s: Any, what: str) -> tuple[Any, dic
 
     from capture.bus import Overflow, Subscriber
     from capture.orientation import check_imu_stream
-    from capture.pipeline import Capture
+    from capture.app.orchestrator import Capture
     from capture.sample import Sample, SampleBatch
 
     cap = Capture([spec], reconnect=s.reconnect_policy())
@@ -1734,6 +1734,3 @@ def main(argv: Sequence[str] | None = None) -> int:
               "please report it)", file=sys.stderr)
         return EXIT_INTERNAL
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -25,7 +25,7 @@ from aiohttp import web
 from capture.errors import CaptureError, ConfigError, SessionExistsError
 
 if TYPE_CHECKING:
-    from capture.serve.service import Service
+    from capture.app.serve.service import Service
 
 log = logging.getLogger(__name__)
 
