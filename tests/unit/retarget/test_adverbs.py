@@ -1,5 +1,6 @@
-"""Radial basis interpolation, multiresolution interpolation, clustering, storage counts and the Verb
-(verbs-and-adverbs spec section 6, items 9-13)."""
+"""Verbs (Rose 1999, ch. 4): the storage counts of section 4.7, and a ``Verb`` built from examples (at
+least D + 1 of them, guarded key-times, examples reproduced, timing blended, unit rotations, turning
+verbs, a multiresolution verb, real clips, the per-frame cost the puppet needs)."""
 
 from __future__ import annotations
 
@@ -12,15 +13,10 @@ import pytest
 
 from capture.quat import quat_exp, quat_mul, quat_slerp
 from retarget.adverbs import (
-    RBF,
     Example,
-    MultiResolutionRBF,
     Verb,
-    basic_clustering,
-    bspline_kernel,
     coefficients_per_frame,
     example_storage,
-    improved_clustering,
     mrbf_storage,
 )
 from retarget.timeline import split_heading, verb_time, yaw_quat
@@ -69,143 +65,6 @@ def locomotion_examples(joints: int = 30) -> list[Example]:
 
 def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
-
-
-# -- 9. RBF in 1-D ----------------------------------------------------------------------------------
-
-
-def test_kernel_values() -> None:
-    assert bspline_kernel(0.0) == pytest.approx(2 / 3)
-    assert bspline_kernel(1.0) == pytest.approx(1 / 6)
-    assert bspline_kernel(-1.0) == pytest.approx(1 / 6)
-    assert bspline_kernel(2.0) == 0.0
-    assert bspline_kernel(3.0) == 0.0
-    x = np.linspace(0.0, 2.5, 2001)
-    assert np.max(np.abs(np.diff(bspline_kernel(x)))) < 1e-3  # continuous
-    np.testing.assert_allclose(bspline_kernel(0.5), (4 - 6 * 0.25 + 3 * 0.125) / 6)
-    np.testing.assert_allclose(bspline_kernel(1.5), 0.5**3 / 6)
-
-
-def test_rbf_1d_spec_numbers() -> None:
-    f = RBF([-10.0, 0.0, 10.0], [-1.0, 2.0, 1.0])
-    np.testing.assert_allclose(f.linear[:, 0], [2 / 3, 0.1], atol=1e-12)
-    np.testing.assert_allclose(f.residuals[:, 0], [-2 / 3, 4 / 3, -2 / 3], atol=1e-12)
-    np.testing.assert_allclose(f.alphas, [10.0, 10.0, 10.0])
-    np.testing.assert_allclose(f.kernel_matrix, [[2 / 3, 1 / 6, 0], [1 / 6, 2 / 3, 1 / 6], [0, 1 / 6, 2 / 3]], atol=1e-12)
-    np.testing.assert_allclose(f.radial[:, 0], [-12 / 7, 20 / 7, -12 / 7], atol=1e-12)
-    np.testing.assert_allclose(f(np.array([-10.0, 0.0, 10.0])), [-1.0, 2.0, 1.0], atol=1e-12)
-    assert f(5.0) == pytest.approx(1.678571, abs=1e-6)
-    assert f(40.0) == pytest.approx(4.666667, abs=1e-6)  # linear part only
-    assert f(40.0) == pytest.approx(2 / 3 + 0.1 * 40, abs=1e-12)
-
-
-def test_kernel_matrix_orientation_with_unequal_radii() -> None:
-    p = np.array([0.0, 1.0, 5.0])
-    f = RBF(p, [0.0, 1.0, -1.0])
-    np.testing.assert_allclose(f.alphas, [1.0, 1.0, 4.0])
-    for i2 in range(3):
-        for i1 in range(3):
-            assert f.kernel_matrix[i2, i1] == pytest.approx(bspline_kernel(abs(p[i2] - p[i1]) / f.alphas[i1]))
-    assert not np.allclose(f.kernel_matrix, f.kernel_matrix.T)
-    np.testing.assert_allclose(f(p), [0.0, 1.0, -1.0], atol=1e-12)
-
-
-def test_rbf_2d_many_channels() -> None:
-    rng = np.random.default_rng(7)
-    pts = rng.uniform(0.0, 1.0, (7, 2))
-    vals = rng.normal(size=(7, 5))
-    f = RBF(pts, vals)
-    np.testing.assert_allclose(f(pts), vals, atol=1e-10)
-    np.testing.assert_allclose(f.basis(pts[2]) @ f.coefficients, vals[2], atol=1e-10)
-    # linear data is reproduced by the linear part alone, also far outside the hull
-    lin = 1.0 + pts @ np.array([2.0, -3.0])
-    g = RBF(pts, lin)
-    np.testing.assert_allclose(g.radial, 0.0, atol=1e-12)
-    assert g(np.array([5.0, 5.0])) == pytest.approx(1.0 + 10.0 - 15.0)
-
-
-def test_rbf_rejects_bad_input() -> None:
-    with pytest.raises(ValueError):
-        RBF(np.zeros((2, 2)) + [[0, 0], [1, 1]], [1.0, 2.0])  # fewer than D + 1
-    with pytest.raises(ValueError):
-        RBF([0.0, 0.0, 1.0], [1.0, 2.0, 3.0])  # coincident
-    with pytest.raises(ValueError):
-        RBF([0.0, 1.0], [1.0, 2.0, 3.0])
-    f = RBF([0.0, 1.0, 2.0], [1.0, 2.0, 0.0])
-    with pytest.raises(ValueError):
-        RBF([[0, 0], [1, 0], [0, 1]], [1, 2, 3])(np.array([1.0, 2.0, 3.0]))
-    assert f(1.0) == pytest.approx(2.0)
-
-
-# -- 10. multiresolution ----------------------------------------------------------------------------
-
-
-def test_mrbf_spec_numbers() -> None:
-    pts, vals = [-10.0, 0.0, 1.0, 10.0], [-1.0, 2.0, 2.0, 1.0]
-    m = MultiResolutionRBF(pts, vals, seed=0)
-    groups = [sorted(sorted(pts[i] for i in c) for c in lev.members()) for lev in m.levels]
-    assert groups[0] == [[-10.0], [0.0, 1.0], [10.0]]
-    assert groups[-1] == [[-10.0], [0.0], [1.0], [10.0]]
-    assert len(m.levels) == 2
-    np.testing.assert_allclose(sorted(m.level_points[0][:, 0]), [-10.0, 0.5, 10.0])
-    np.testing.assert_allclose(m(np.array(pts)), vals, atol=1e-12)
-    assert m(5.0) == pytest.approx(1.6848, abs=1e-4)
-    assert RBF([-10.0, 0.0, 10.0], [-1.0, 2.0, 1.0])(5.0) == pytest.approx(1.6786, abs=1e-4)
-    assert m(-5.0) == pytest.approx(0.583, abs=1e-3)
-    single = RBF(pts, vals)
-    np.testing.assert_allclose(single(np.array(pts)), vals, atol=1e-12)
-    assert single(5.0) == pytest.approx(0.789, abs=1e-3)
-    assert single(-5.0) == pytest.approx(-0.226, abs=1e-3)
-
-
-def test_mrbf_2d_interpolates_and_is_seeded() -> None:
-    rng = np.random.default_rng(8)
-    pts = rng.uniform(0.0, 1.0, (12, 2))
-    vals = np.sin(3 * pts[:, :1]) + pts[:, 1:] ** 2
-    a = MultiResolutionRBF(pts, vals, seed=3)
-    b = MultiResolutionRBF(pts, vals, seed=3)
-    np.testing.assert_allclose(a(pts), vals, atol=1e-10)
-    np.testing.assert_array_equal(a.coefficients, b.coefficients)
-    counts = [lev.count for lev in a.levels]
-    assert counts[0] >= 3 and counts[-1] == 12 and all(np.diff(counts) > 0)
-
-
-# -- 11. clustering ---------------------------------------------------------------------------------
-
-
-def test_basic_clustering_spec_example() -> None:
-    c = basic_clustering([-10.0, 0.0, 1.0, 10.0], 3, rng=np.random.default_rng(0))
-    assert c.cost == pytest.approx(0.5)
-    groups = sorted(sorted([-10.0, 0.0, 1.0, 10.0][i] for i in g) for g in c.members())
-    assert groups == [[-10.0], [0.0, 1.0], [10.0]]
-    s = basic_clustering([-10.0, 0.0, 1.0, 10.0], 4, rng=np.random.default_rng(0))
-    assert s.cost == 0.0
-
-
-def test_clusters_never_empty_and_seeded() -> None:
-    for seed in range(20):
-        rng = np.random.default_rng(seed)
-        pts = rng.normal(size=(9, 2)) * np.array([1.0, 3.0])
-        n = int(rng.integers(1, 10))
-        c = basic_clustering(pts, n, rng=np.random.default_rng(seed), restarts=4)
-        assert c.count == n
-        assert np.all(np.bincount(c.labels, minlength=n) >= 1)
-        again = basic_clustering(pts, n, rng=np.random.default_rng(seed), restarts=4)
-        np.testing.assert_array_equal(c.labels, again.labels)
-    with pytest.raises(ValueError):
-        basic_clustering([0.0, 1.0], 3, rng=np.random.default_rng(0))
-
-
-def test_improved_clustering_starts_at_d_plus_1() -> None:
-    rng = np.random.default_rng(9)
-    centres = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
-    pts = np.repeat(centres, 3, axis=0) + rng.normal(scale=0.1, size=(12, 2))
-    loose = improved_clustering(pts, max_cost=1e9, max_clusters=12, rng=np.random.default_rng(0))
-    assert loose.count == 3  # D + 1, not D
-    tight = improved_clustering(pts, max_cost=2.0, max_clusters=12, rng=np.random.default_rng(0))
-    assert tight.count == 4 and tight.cost <= 2.0
-    with pytest.raises(ValueError):
-        improved_clustering(pts[:2], max_cost=1.0, max_clusters=2, rng=np.random.default_rng(0))
 
 
 # -- 13. counts ------------------------------------------------------------------------------------
