@@ -36,8 +36,10 @@ FS = 100.0
 def cal_example() -> ImuCalibration:
     return ImuCalibration(gyro_bias=(0.01, -0.02, 0.003), acc_offset=(0.1, -0.2, 0.05),
                           acc_matrix=((1.01, 0.002, -0.001), (0.0, 0.99, 0.003), (0.0, 0.0, 1.002)),
-                          mag_hard_iron=(12.0, -3.5, 40.0), mag_soft_iron=((1.1, 0.02, 0.0), (0.02, 0.95, 0.01), (0.0, 0.01, 1.0)),
-                          mounting=tuple(Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_quat(scalar_first=True)),
+                          mag_hard_iron=(12.0, -3.5, 40.0),
+                          mag_soft_iron=((1.1, 0.02, 0.0), (0.02, 0.95, 0.01), (0.0, 0.01, 1.0)),
+                          mounting=tuple(Rotation.from_euler("xyz", [10, -20, 30], degrees=True)
+                                         .as_quat(scalar_first=True)),
                           yaw_offset_rad=0.4, device="witmotion:ABC123", note="test")
 
 
@@ -83,17 +85,17 @@ def test_apply_vectorised_and_identity() -> None:
     rng = np.random.default_rng(0)
     acc, gyro, mag = rng.normal(size=(50, 3)) * 9, rng.normal(size=(50, 3)), rng.normal(size=(50, 3)) * 40
     a2, g2, m2 = c.apply(acc, gyro, mag)
-    A, M = np.array(c.acc_matrix), np.array(c.mag_soft_iron)
-    np.testing.assert_allclose(a2, (acc - c.acc_offset) @ A.T, rtol=1e-12)
+    acc_m, soft = np.array(c.acc_matrix), np.array(c.mag_soft_iron)
+    np.testing.assert_allclose(a2, (acc - c.acc_offset) @ acc_m.T, rtol=1e-12)
     np.testing.assert_allclose(g2, gyro - c.gyro_bias, rtol=1e-12)
-    np.testing.assert_allclose(m2, (mag - c.mag_hard_iron) @ M.T, rtol=1e-12)
+    np.testing.assert_allclose(m2, (mag - c.mag_hard_iron) @ soft.T, rtol=1e-12)
     a1, _, m1 = c.apply(acc[7], gyro[7], None)
     np.testing.assert_array_equal(a1, a2[7])  # one row and many rows: bit-identical
     assert m1 is None
     one_a, one_g = c.apply_one(tuple(acc[7]), tuple(gyro[7]))
     assert one_a == tuple(a2[7]) and one_g == tuple(g2[7])
     ident = ImuCalibration()
-    for x, y in zip(ident.apply(acc, gyro, mag), (acc, gyro, mag)):
+    for x, y in zip(ident.apply(acc, gyro, mag), (acc, gyro, mag), strict=True):
         np.testing.assert_array_equal(x, y)
     assert ident.is_identity and ident.sensor_identity and ident.body_identity and not c.is_identity
 
@@ -122,7 +124,8 @@ def test_yaw_reset_makes_heading_zero() -> None:
     c2 = c.with_yaw_reset(q)
     assert quat_heading(c2.body_orientation(q)) == pytest.approx(0.0, abs=1e-9)
     # turning the sensor 30 deg about vertical afterwards reads 30 deg
-    q30 = (Rotation.from_euler("z", 30, degrees=True) * Rotation.from_quat(q, scalar_first=True)).as_quat(scalar_first=True)
+    q30 = (Rotation.from_euler("z", 30, degrees=True) * Rotation.from_quat(q, scalar_first=True)
+           ).as_quat(scalar_first=True)
     assert math.degrees(quat_heading(c2.body_orientation(q30))) == pytest.approx(30.0, abs=1e-6)
 
 
@@ -192,7 +195,8 @@ TURN = [0, 0, 2 * D2R]  # 2 deg/s about gravity: looks exactly like bias to a na
 
 
 def test_auto_bias_on_a_real_walk_finds_the_standing_still_period() -> None:
-    f = Path(__file__).resolve().parents[4] / "shared" / "traces" / "a_imu_csv" / "gaitmap_walk" / "imu_sample_not_rotated.csv"
+    f = (Path(__file__).resolve().parents[4] / "shared" / "traces" / "a_imu_csv" / "gaitmap_walk"
+         / "imu_sample_not_rotated.csv")
     if not f.is_file():
         pytest.skip(f"gait trace not found at {f}")
     d = np.loadtxt(f, delimiter=",", skiprows=2, max_rows=2048)  # 10 s: stand, then walk
@@ -278,23 +282,23 @@ def _poses(n_dirs: int, seed: int = 0):
     d = rng.normal(size=(n_dirs, 3))
     d[:6] = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    A = np.array([[1.02, 0.01, -0.015], [0.0, 0.98, 0.012], [0.0, 0.0, 1.01]])
+    acc_m = np.array([[1.02, 0.01, -0.015], [0.0, 0.98, 0.012], [0.0, 0.0, 1.01]])
     o = np.array([0.2, -0.15, 0.3])
-    raw = (d * G0) @ np.linalg.inv(A).T + o + rng.normal(0, 0.003, (n_dirs, 3))
-    return raw, A, o
+    raw = (d * G0) @ np.linalg.inv(acc_m).T + o + rng.normal(0, 0.003, (n_dirs, 3))
+    return raw, acc_m, o
 
 
 def test_accelerometer_fit_full_and_diagonal() -> None:
-    raw, A, o = _poses(16)
+    raw, acc_m, o = _poses(16)
     f = fit_accelerometer(raw)
     assert f.model == "full" and 12 <= f.distinct <= 16
     np.testing.assert_allclose(f.offset, o, atol=0.01)
-    np.testing.assert_allclose(f.matrix, A, atol=0.002)
+    np.testing.assert_allclose(f.matrix, acc_m, atol=0.002)
     assert f.residual_rms < 0.01 < f.raw_rms
     f6 = fit_accelerometer(raw[:6])  # the six faces: offset and scale
     assert f6.model == "diagonal"
     np.testing.assert_allclose(f6.offset, o, atol=0.03)
-    np.testing.assert_allclose(np.diag(f6.matrix), np.diag(A), atol=0.01)
+    np.testing.assert_allclose(np.diag(f6.matrix), np.diag(acc_m), atol=0.01)
 
 
 def test_accelerometer_fit_rejects_too_few_or_too_similar() -> None:
@@ -305,7 +309,7 @@ def test_accelerometer_fit_rejects_too_few_or_too_similar() -> None:
         fit_accelerometer(raw[:8], model="full")
     tilt = Rotation.from_rotvec(np.random.default_rng(1).normal(0, 0.3, (12, 3)))
     similar = tilt.apply([0, 0, G0])  # all roughly z-up
-    with pytest.raises(ConfigError, match="too similar|distinct"):
+    with pytest.raises(ConfigError, match=r"too similar|distinct"):
         fit_accelerometer(similar)
     one_sided = raw.copy()
     one_sided[:, 0] = np.abs(one_sided[:, 0])  # the x axis never points down
@@ -333,16 +337,16 @@ def test_magnetometer_ellipsoid_fit_known_answer() -> None:
     rng = np.random.default_rng(5)
     d = rng.normal(size=(3000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    S = np.array([[1.1, 0.05, 0.02], [0.05, 0.9, -0.03], [0.02, -0.03, 1.0]])
+    soft = np.array([[1.1, 0.05, 0.02], [0.05, 0.9, -0.03], [0.02, -0.03, 1.0]])
     h = np.array([12.0, -30.0, 5.0])
-    raw = (d * 45.0) @ np.linalg.inv(S).T + h + rng.normal(0, 0.3, (3000, 3))
+    raw = (d * 45.0) @ np.linalg.inv(soft).T + h + rng.normal(0, 0.3, (3000, 3))
     raw[:60] += 25.0  # a disturbance: trimmed as outliers
     f = fit_magnetometer(raw)
     assert f.model == "ellipsoid" and f.coverage > 0.95
     np.testing.assert_allclose(f.hard_iron, h, atol=0.2)
-    # calibrated readings lie on a sphere of radius `field`: soft iron = S scaled to that radius
-    assert f.field == pytest.approx(45.0 / np.cbrt(np.linalg.det(S)), rel=0.005)
-    np.testing.assert_allclose(f.soft_iron * 45.0 / f.field, S, atol=0.005)
+    # calibrated readings lie on a sphere of radius `field`: soft iron = `soft` scaled to that radius
+    assert f.field == pytest.approx(45.0 / np.cbrt(np.linalg.det(soft)), rel=0.005)
+    np.testing.assert_allclose(f.soft_iron * 45.0 / f.field, soft, atol=0.005)
     assert f.spread_after < 0.01
     assert f.spread_before > 0.1
     assert f.inliers <= 3000 - 55
