@@ -13,7 +13,7 @@ import pytest
 from capture.errors import NoMotionError, NoPeriodFoundError
 from cycles import Cycle, CycleExtractor, ExtractOptions, extract, layer_onto
 from cycles.descriptor import descriptors, distance_rows, distances_to, otsu_threshold
-from cycles.extraction import smallest_feasible_period
+from cycles.matching import smallest_feasible_period
 from sim_devices.loops import jittered_loops
 
 TRACES = Path(__file__).resolve().parents[4] / "shared" / "traces"
