@@ -37,9 +37,9 @@ DEVICE_TYPES: dict[str, tuple[str, str]] = {
     "joycon": ("devices.hid.nintendo", "JoyCon"),
     "phone": ("devices.phone", "PhonePage"),
     "sensorlogger": ("devices.phone", "SensorLoggerPhone"),
-    "osc": ("devices.phone_apps", "OscPhone"),
-    "hyperimu": ("devices.phone_apps", "HyperImuPhone"),
-    "sensorserver": ("devices.phone_apps", "SensorServerPhone"),
+    "osc": ("devices.phone_apps.osc", "OscPhone"),
+    "hyperimu": ("devices.phone_apps.hyperimu", "HyperImuPhone"),
+    "sensorserver": ("devices.phone_apps.sensorserver", "SensorServerPhone"),
 }
 
 SPEC_FORM = "[NAME=][KIND@]SCHEME://ADDRESS[?key=value&...]"

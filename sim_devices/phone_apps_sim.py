@@ -16,13 +16,9 @@ from typing import Any
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 
-from devices.codecs.phone_apps import (
-    OSC_IMMEDIATELY,
-    HyperImuCodec,
-    SensorServerCodec,
-    SensorServerEvent,
-    SensorServerTouch,
-)
+from devices.codecs.hyperimu import HyperImuCodec
+from devices.codecs.osc import OSC_IMMEDIATELY
+from devices.codecs.sensorserver import SensorServerCodec, SensorServerEvent, SensorServerTouch
 from devices.codecs.textline import TextFrame
 
 Vec = Sequence[float]

@@ -28,7 +28,7 @@ TRANSPORTS: dict[str, tuple[str, str]] = {
     "loop": ("devices.transports.serialport", "LoopTransport"),
     "hid": ("devices.transports.hid", "HidTransport"),
     "net": ("devices.transports.network", "NetTransport"),
-    "sensorserver": ("devices.transports.network", "SensorServerTransport"),
+    "sensorserver": ("devices.transports.sensorserver", "SensorServerTransport"),
 }
 
 _ENTRY_POINT_GROUP = "perfcap.transports"

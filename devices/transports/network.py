@@ -1,4 +1,4 @@
-"""Network transports: phones that stream to perfcap, and phones perfcap connects to.
+"""The ``net://`` transport: phones that stream to perfcap through ``perfcap serve``.
 
 ``net://HUB/PROTOCOL/ID`` is the transport of a phone that *sends to* perfcap (the built-in page over
 a WebSocket, Sensor Logger's HTTP push, OSC or HyperIMU datagrams). The network side lives in
@@ -9,9 +9,8 @@ A phone that drops off (socket closed) makes ``read`` fail once its queued messa
 the reader's reconnect policy applies unchanged: the phone comes back under the same device, stream
 names and sequence numbering when it reconnects with the same id.
 
-``sensorserver://HOST:PORT?types=...`` is the other direction: the Android SensorServer app *is* a
-WebSocket server, and this transport is its client (``websockets``' synchronous client, one per
-device thread). Every text frame is one chunk.
+The other direction, the SensorServer app's WebSocket server that perfcap connects to, is
+``devices.transports.sensorserver``.
 """
 
 from __future__ import annotations
@@ -22,15 +21,8 @@ import threading
 from typing import Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
-from capture.errors import (
-    ConfigError,
-    DeviceInitError,
-    DeviceIOError,
-    DeviceNotFoundError,
-    EndOfStream,
-)
-from capture.sample import Chunk, Direction
-from devices.codecs.phone_apps import SENSORSERVER_CLOSE_CODES, sensorserver_path
+from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
+from capture.sample import Chunk
 from devices.options import Option
 from devices.transports.base import Transport
 
@@ -226,98 +218,3 @@ class NetTransport(Transport):
         if box is None:
             raise DeviceIOError(f"{self.url}: not open", source=self.url)
         return box.get(timeout)
-
-
-# -- SensorServer: perfcap is the WebSocket client ------------------------------------------------
-
-class SensorServerTransport(Transport):
-    """The SensorServer app's WebSocket server on a phone: ``sensorserver://HOST:PORT?types=a,b``."""
-
-    scheme = "sensorserver"
-    usage = "sensorserver://HOST:PORT?types=accelerometer,gyroscope"
-    options: ClassVar[dict[str, Option]] = {
-        "types": Option(str, "accelerometer,gyroscope", "sensors to subscribe to (Android sensor type names)"),
-        "open_timeout": Option(float, 5.0, "seconds to wait for the phone to accept the connection", min=0.1,
-                               max=120.0),
-        "max_message": Option(int, 65536, "largest message accepted, bytes", min=256, max=16 << 20),
-    }
-
-    def __init__(self, address: str, options: dict[str, Any] | None = None, clock: Clock = MONOTONIC) -> None:
-        super().__init__(address, options, clock)
-        host, sep, port = address.rpartition(":")
-        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise ConfigError(f"invalid sensorserver:// address {address!r}; expected {self.usage}", source=address)
-        self.host = host.strip("[]")
-        self.port = int(port)
-        self.types = [t.strip() for t in str(self.opts["types"]).split(",") if t.strip()]
-        try:
-            self.path = sensorserver_path(self.types)
-        except ValueError as exc:
-            raise ConfigError(f"{self.url}: {exc}; expected {self.usage}", source=self.url) from None
-        self._ws: Any = None
-
-    def implied_kind(self) -> str | None:
-        return "sensorserver"
-
-    def implied_device_options(self) -> dict[str, Any]:
-        return {"types": ",".join(self.types)}
-
-    def identity_hint(self) -> dict[str, Any]:
-        return {"address": f"{self.host}:{self.port}"}
-
-    @property
-    def ws_url(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"ws://{host}:{self.port}{self.path}"
-
-    def open(self) -> None:
-        from websockets.exceptions import (
-            InvalidHandshake,
-            InvalidURI,
-            WebSocketException,
-        )
-        from websockets.sync.client import connect
-
-        try:
-            conn = connect(self.ws_url, open_timeout=self.opts["open_timeout"],
-                           max_size=self.opts["max_message"], compression=None)
-            # entered as a context manager (websockets 17.1 deprecates the bare call); closed in close()
-            self._ws = conn.__enter__()
-        except (ConnectionRefusedError, TimeoutError) as exc:
-            raise DeviceNotFoundError(f"SensorServer at {self.host}:{self.port} does not answer ({exc}); is the app's"
-                                      " server started and the phone on this network?", source=self.url) from exc
-        except (OSError, InvalidURI, InvalidHandshake, WebSocketException) as exc:
-            raise DeviceInitError(f"SensorServer at {self.host}:{self.port}: {exc}", source=self.url) from exc
-
-    def close(self) -> None:
-        ws, self._ws = self._ws, None
-        if ws is not None:
-            try:
-                ws.close()
-            except Exception:
-                log.debug("sensorserver close failed", exc_info=True)
-
-    @property
-    def is_open(self) -> bool:
-        return self._ws is not None
-
-    def read(self, timeout: float) -> Chunk | None:
-        from websockets.exceptions import ConnectionClosed
-
-        ws = self._ws
-        if ws is None:
-            raise DeviceIOError(f"{self.url}: not open", source=self.url)
-        try:
-            msg = ws.recv(timeout=timeout)
-        except TimeoutError:
-            return None
-        except ConnectionClosed as exc:
-            code = exc.rcvd.code if exc.rcvd is not None else None
-            why = SENSORSERVER_CLOSE_CODES.get(code or 0, exc.rcvd.reason if exc.rcvd else "connection lost")
-            raise DeviceIOError(f"SensorServer at {self.host}:{self.port} closed the connection"
-                                f"{f' ({code})' if code else ''}: {why}", source=self.url) from exc
-        except OSError as exc:
-            raise DeviceIOError(f"SensorServer at {self.host}:{self.port}: {exc}", source=self.url) from exc
-        t = self.clock.now_ns()
-        data = msg.encode() if isinstance(msg, str) else bytes(msg)
-        return Chunk(data, t, Direction.RX)

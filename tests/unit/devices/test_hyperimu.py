@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 
 from capture.errors import ConfigError, ProtocolError
 from capture.sample import Chunk, Direction, Sample
-from devices.codecs.phone_apps import HyperImuCodec
+from devices.codecs.hyperimu import HyperImuCodec
 from devices.codecs.textline import TextFrame
-from devices.phone_apps import HYPERIMU_CLOCK, HyperImuPhone
+from devices.phone_apps.hyperimu import HYPERIMU_CLOCK, HyperImuPhone
 from devices.transports import open_transport
 from sim_devices.phone_apps_sim import hyperimu_rows
 

@@ -21,8 +21,9 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from capture.errors import ConfigError, ProtocolError
 from capture.sample import Chunk, DeviceEvent, Direction, EventKind, Sample
-from devices.codecs.phone_apps import OSC_IMMEDIATELY, OSC_MAX_DEPTH, OscCodec, OscFrame, OscMsg
-from devices.phone_apps import G0, OscPhone, zigsim_uuid
+from devices.codecs.osc import OSC_IMMEDIATELY, OSC_MAX_DEPTH, OscCodec, OscFrame, OscMsg
+from devices.phone_apps.base import G0
+from devices.phone_apps.osc import OscPhone, zigsim_uuid
 from devices.transports import open_transport
 from sim_devices.phone_apps_sim import gyrosc_bundle, osc_bundle, osc_message, zigsim_bundle
 
@@ -249,7 +250,7 @@ def test_options_are_checked(opts, what):
 
 def test_unmatched_addresses_are_counted_and_logged_once(caplog):
     dev = device(map="/acc:acc:x,y,z")
-    with caplog.at_level(logging.INFO, logger="devices.phone_apps"):
+    with caplog.at_level(logging.INFO, logger="devices.phone_apps.osc"):
         feed(dev, [osc_bundle([("/mystery", [1.0]), ("/acc", [0.0, 0.0, 1.0]), ("/other", ["s"])])] * 5)
     assert dev.health()["unmatched"] == {"/mystery": 5, "/other": 5}
     logged = [r.getMessage() for r in caplog.records if "not in map" in r.getMessage()]

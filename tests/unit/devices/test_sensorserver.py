@@ -19,15 +19,10 @@ from hypothesis import strategies as st
 
 from capture.errors import ConfigError, ProtocolError
 from capture.sample import Chunk, DeviceEvent, Direction, EventKind, Sample
-from devices.codecs.phone_apps import (
-    SENSORSERVER_CLOSE_CODES,
-    SS_MAX_BYTES,
-    SensorServerCodec,
-    SensorServerEvent,
-    SensorServerTouch,
-)
-from devices.phone_apps import SENSORSERVER_CLOCK, SensorServerPhone
+from devices.codecs.sensorserver import SS_MAX_BYTES, SensorServerCodec, SensorServerEvent, SensorServerTouch
+from devices.phone_apps.sensorserver import SENSORSERVER_CLOCK, SensorServerPhone
 from devices.transports import open_transport
+from devices.transports.sensorserver import SENSORSERVER_CLOSE_CODES
 from sim_devices.phone_apps_sim import sensorserver_event, sensorserver_touch
 
 T0 = 123_456_789_000  # ns since boot
