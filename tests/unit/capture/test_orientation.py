@@ -28,20 +28,21 @@ from capture.quat import quat_conj, quat_mul
 from capture.sample import NO_TIME, DeviceIdentity, Sample, SampleBatch, StreamInfo
 
 D2R = math.pi / 180
-GAIT_CSV = Path(__file__).resolve().parents[4] / "shared" / "traces" / "a_imu_csv" / "gaitmap_walk" / "imu_sample_not_rotated.csv"
+GAIT_CSV = (Path(__file__).resolve().parents[4] / "shared" / "traces" / "a_imu_csv" / "gaitmap_walk"
+            / "imu_sample_not_rotated.csv")
 IMU_CH = ("ax", "ay", "az", "gx", "gy", "gz", "temp")
 SI = ("m/s^2",) * 3 + ("rad/s",) * 3 + ("degC",)
 
 
 def imu_info(name: str = "wrist/imu", units: tuple[str, ...] = SI, rate: float | None = 100.0, kind: str = "imu",
              frame: str | None = "sensor frame", channels: tuple[str, ...] = IMU_CH) -> StreamInfo:
-    return StreamInfo(name, kind, channels, units, rate, DeviceIdentity(kind="test", name=name.split("/")[0]), frame)
+    return StreamInfo(name, kind, channels, units, rate, DeviceIdentity(kind="test", name=name.split("/", 1)[0]), frame)
 
 
 def mag_info(name: str = "wrist/mag", units: tuple[str, ...] = ("uT",) * 3, frame: str | None = "sensor frame",
              rate: float = 20.0) -> StreamInfo:
-    return StreamInfo(name, "mag", ("mx", "my", "mz"), units, rate, DeviceIdentity(kind="test", name=name.split("/")[0]),
-                      frame)
+    return StreamInfo(name, "mag", ("mx", "my", "mz"), units, rate,
+                      DeviceIdentity(kind="test", name=name.split("/", 1)[0]), frame)
 
 
 def angle_deg(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
@@ -78,8 +79,8 @@ def test_imu_stream_units_converted() -> None:
 
 @pytest.mark.parametrize(("info", "words"), [
     (imu_info(units=("m/s", "m/s^2", "m/s^2", "rad/s", "rad/s", "rad/s", "degC")), ["wrist/imu", "ax", "'m/s'"]),
-    (imu_info(units=SI[:3] + ("rpm", "rad/s", "rad/s", "degC")), ["wrist/imu", "gx", "'rpm'"]),
-    (imu_info(units=SI[:3] + ("rad/s", "deg/s", "rad/s", "degC")), ["wrist/imu", "different units"]),
+    (imu_info(units=(*SI[:3], "rpm", "rad/s", "rad/s", "degC")), ["wrist/imu", "gx", "'rpm'"]),
+    (imu_info(units=(*SI[:3], "rad/s", "deg/s", "rad/s", "degC")), ["wrist/imu", "different units"]),
     (imu_info(channels=("ax", "ay", "az", "gx", "gy", "wz", "temp")), ["wrist/imu", "'gz' not found"]),
     (imu_info(kind="euler"), ["wrist/imu", "'euler'"]),
     (imu_info(frame="left-handed x fwd"), ["wrist/imu", "left-handed"]),
@@ -275,6 +276,20 @@ def test_streaming_equals_batch() -> None:
     np.testing.assert_array_equal(np.vstack([p.q for p in parts]), whole.q)
 
 
+@pytest.mark.parametrize("settings", [{}, {"gyro_offset": True}])
+def test_one_sample_path_equals_batch_bit_for_bit(settings: dict[str, bool]) -> None:
+    t, g, a, _, _ = motion(100, 3.0, [0.5, -0.2, 0.8], noise=0.1)
+    t[150:] += 1.0  # a gap: re-initialised
+    t[200] = t[199]  # not after the previous sample: skipped
+    g[220] = np.nan  # an invalid gyro: skipped
+    a[240] = np.nan  # no valid accelerometer: a gyro-only update
+    whole = OrientationFilter("fusion", **settings).update_many(t, g, a)
+    f = OrientationFilter("fusion", **settings)
+    ones = [f.update_one(float(t[i]), tuple(g[i].tolist()), tuple(a[i].tolist())) for i in range(len(t))]
+    np.testing.assert_array_equal(np.array([q for q, _ in ones]), whole.q)
+    assert [flags for _, flags in ones] == whole.flags.tolist()
+
+
 # ------------------------------------------------------------------------------------------------
 # mixed rates
 
@@ -351,7 +366,8 @@ def test_mahony_winds_up_after_a_fast_spin_at_default_gains_and_ours_does_not() 
     assert abs((h[k2] - h[k1]) / ((k2 - k1) * 0.01)) < 0.1
     assert np.linalg.norm(ours.mahony_bias) <= math.radians(3) + 1e-12
     # and it still estimates tilt after the spin
-    tilt = np.degrees(np.arccos(np.clip((gravity_from_quaternion(r.q[-1]) / G0) @ (acc[-1] / np.linalg.norm(acc[-1])), -1, 1)))
+    up = gravity_from_quaternion(r.q[-1]) / G0
+    tilt = np.degrees(np.arccos(np.clip(up @ (acc[-1] / np.linalg.norm(acc[-1])), -1, 1)))
     assert tilt < 1.0
 
 
@@ -421,7 +437,8 @@ def test_processor_sample_and_batch_outputs_identical(kind: str, with_cal: bool)
     if with_cal:
         cals = {"wrist": ImuCalibration(gyro_bias=(0.01, -0.02, 0.005), acc_offset=(0.1, 0, -0.05),
                                         acc_matrix=((1.01, 0.002, 0), (0, 0.99, 0.001), (0, 0, 1.0)),
-                                        mounting=tuple(Rotation.from_euler("y", 30, degrees=True).as_quat(scalar_first=True)),
+                                        mounting=tuple(Rotation.from_euler("y", 30, degrees=True)
+                                                       .as_quat(scalar_first=True)),
                                         yaw_offset_rad=0.3)}
     batches = _batches(t, a, g)
     pb = OrientationProcessor([imu_info()], kind, cals)
