@@ -7,22 +7,22 @@ from __future__ import annotations
 
 import math
 import operator
+from typing import TYPE_CHECKING, SupportsIndex
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from cycles._types import FloatArray
 
 
 def as_int(value: object, name: str) -> int:
     """``value`` as a Python int; bools, floats and other non-integers are refused with ValueError."""
-    try:
-        number = operator.index(value)  # type: ignore[arg-type]
-    except TypeError as err:
-        raise ValueError(f"{name} must be an integer, got {value!r}") from err
-    if value is True or value is False:
+    if isinstance(value, bool) or not isinstance(value, SupportsIndex):
         raise ValueError(f"{name} must be an integer, got {value!r}")
-    return number
+    return operator.index(value)
 
 
-def finite_array(values: object, name: str, ndim: tuple[int, ...]) -> np.ndarray:
+def finite_array(values: object, name: str, ndim: tuple[int, ...]) -> FloatArray:
     arr = np.asarray(values, dtype=np.float64)
     if arr.ndim not in ndim:
         raise ValueError(f"{name} must have {' or '.join(map(str, ndim))} dimensions, got shape {arr.shape}")
@@ -38,7 +38,7 @@ def positive_finite(value: float, name: str) -> float:
     return v
 
 
-def unit_vector(vector: object, name: str) -> np.ndarray:
+def unit_vector(vector: object, name: str) -> FloatArray:
     v = finite_array(vector, name, (1,))
     if v.shape != (3,):
         raise ValueError(f"{name} must have 3 components, got shape {v.shape}")
@@ -48,7 +48,7 @@ def unit_vector(vector: object, name: str) -> np.ndarray:
     return v / norm
 
 
-def loop_frames(values: np.ndarray, closed: bool, name: str, *, quaternion: bool = False) -> int:
+def loop_frames(values: FloatArray, closed: bool, name: str, *, quaternion: bool = False) -> int:
     """The number of distinct frames ``m`` in ``values``, checking the closing row if ``closed``."""
     rows = int(values.shape[0])
     if not closed:

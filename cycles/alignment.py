@@ -15,12 +15,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from cycles.descriptor import distance_rows, parabolic_offset
 from cycles.prepare import at_positions
+
+if TYPE_CHECKING:
+    from cycles._types import BoolArray, FloatArray
 
 __all__ = [
     "Alignment",
@@ -35,7 +39,7 @@ __all__ = [
 ]
 
 
-def outliers(err: np.ndarray) -> np.ndarray:
+def outliers(err: FloatArray) -> BoolArray:
     """Loops whose misfit is far above the others' (a turn or a stumble inside a take), as a mask; never
     more than 40% of the loops."""
     if err.size <= 2:
@@ -47,7 +51,7 @@ def outliers(err: np.ndarray) -> np.ndarray:
     return bad
 
 
-def loop_consistency(stack: np.ndarray) -> tuple[float, np.ndarray]:
+def loop_consistency(stack: FloatArray) -> tuple[float, FloatArray]:
     """Consistency R of time-aligned loops ``(p, m + 1, D)`` on standardised channels, and each loop's
     misfit: 1 - (mean squared deviation of the loops from their average) / (their variance), over the
     loops that are not outliers (:func:`outliers`)."""
@@ -67,7 +71,7 @@ def loop_consistency(stack: np.ndarray) -> tuple[float, np.ndarray]:
     return float(1.0 - err.mean()), err
 
 
-def detrended(z: np.ndarray, tau: float) -> np.ndarray:
+def detrended(z: FloatArray, tau: float) -> FloatArray:
     """``z`` minus its moving average over one candidate period. A motion that repeats every ``tau``
     is unchanged (its average over a period is constant) while drift is removed: a performer who walks
     on in world coordinates still repeats, a ramp or a random walk is left with nothing that does, and
@@ -82,13 +86,13 @@ def detrended(z: np.ndarray, tau: float) -> np.ndarray:
     return z - (c[hi] - c[lo]) / (hi - lo)[:, None]
 
 
-def consistency_at(zv: np.ndarray, pos: np.ndarray) -> tuple[float, np.ndarray]:
+def consistency_at(zv: FloatArray, pos: FloatArray) -> tuple[float, FloatArray]:
     """:func:`loop_consistency` of the loops of ``zv`` sampled at positions ``pos`` ``(p, m + 1)``."""
     p, m1 = pos.shape
     return loop_consistency(at_positions(zv, pos.reshape(-1)).reshape(p, m1, -1))
 
 
-def linear_consistency(zv: np.ndarray, loops: list[tuple[float, float]], m: int) -> tuple[float, np.ndarray]:
+def linear_consistency(zv: FloatArray, loops: list[tuple[float, float]], m: int) -> tuple[float, FloatArray]:
     """:func:`consistency_at` for loops resampled linearly (no warp) to ``m`` + 1 samples."""
     u = np.linspace(0.0, 1.0, m + 1)
     ab = np.asarray(loops)
@@ -101,19 +105,20 @@ class Alignment:
     anchors whose common place in the average loop is ``target`` (0..1, loop ends included)."""
 
     loops: list[tuple[float, float]]
-    src: np.ndarray
-    target: np.ndarray
+    src: FloatArray
+    target: FloatArray
 
-    def positions(self, u: np.ndarray) -> np.ndarray:
+    def positions(self, u: FloatArray) -> FloatArray:
         """``(loops, len(u))`` sample positions of the loop phases ``u`` (0..1) in every loop."""
         return self.warp(u)
 
-    def warp(self, u: np.ndarray) -> np.ndarray:
+    def warp(self, u: FloatArray) -> FloatArray:
         """As :meth:`positions`, from one monotone PCHIP over all loops (they share the knots)."""
-        return PchipInterpolator(self.target, self.src.T, axis=0)(u).T
+        pos: FloatArray = PchipInterpolator(self.target, self.src.T, axis=0)(u).T
+        return pos
 
 
-def align(h: np.ndarray, g: np.ndarray, loops: list[tuple[float, float]], period: float, k: int) -> Alignment:
+def align(h: FloatArray, g: FloatArray, loops: list[tuple[float, float]], period: float, k: int) -> Alignment:
     """Correspondence (spec §1.3): anchors evenly spaced in the reference loop (the one closest to the
     median length), each matched by d_D within ceil(T/8) of its proportional place in every other loop,
     kept monotone; the anchors' common place is their mean normalised position."""
@@ -169,12 +174,12 @@ def align(h: np.ndarray, g: np.ndarray, loops: list[tuple[float, float]], period
     return Alignment(loops=list(loops), src=src, target=target)
 
 
-def warped_consistency(zv: np.ndarray, al: Alignment, m: int) -> tuple[float, np.ndarray]:
+def warped_consistency(zv: FloatArray, al: Alignment, m: int) -> tuple[float, FloatArray]:
     """:func:`consistency_at` of the loops warped onto the common timeline."""
     return consistency_at(zv, al.positions(np.linspace(0.0, 1.0, m + 1)))
 
 
-def refine_cuts(z: np.ndarray, cuts: np.ndarray, mean0: np.ndarray, per: float) -> np.ndarray:
+def refine_cuts(z: FloatArray, cuts: FloatArray, mean0: FloatArray, per: float) -> FloatArray:
     """Each cut moved to where the data around it best fits the average loop around its start (least
     squares over +-T/4, offsets removed, shifts up to +-T/8, sub-sample by a parabola)."""
     n = z.shape[0]

@@ -12,26 +12,31 @@ devices; the time base is the bus time.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from capture.errors import CycleError, NoPeriodFoundError
 from capture.sample import Sample, SampleBatch
-from cycles.cycle import Cycle
 from cycles.extraction import ExtractOptions, extract
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
+
+    from cycles._types import FloatArray
+    from cycles.cycle import Cycle
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class _Buffer:
-    t: np.ndarray
-    v: np.ndarray
+    t: FloatArray
+    v: FloatArray
     n: int = 0
 
-    def append(self, t: np.ndarray, v: np.ndarray) -> None:
+    def append(self, t: FloatArray, v: FloatArray) -> None:
         k = t.size
         if self.n + k > self.t.size:
             cap = max(2 * self.t.size, self.n + k)
@@ -97,7 +102,7 @@ class CycleExtractor:
 
     # -- input
 
-    def _take(self, item: Sample | SampleBatch) -> tuple[np.ndarray, np.ndarray] | None:
+    def _take(self, item: Sample | SampleBatch) -> tuple[FloatArray, FloatArray] | None:
         if self.stream is None:
             self.stream = item.stream
         if item.stream != self.stream:
@@ -168,8 +173,8 @@ class CycleExtractor:
         Raises:
             NoMotionError, NoPeriodFoundError: as :func:`cycles.extract`.
         """
-        ts: list[np.ndarray] = []
-        vs: list[np.ndarray] = []
+        ts: list[FloatArray] = []
+        vs: list[FloatArray] = []
         for item in samples:
             got = self._take(item)
             if got is not None:

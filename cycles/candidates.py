@@ -12,15 +12,19 @@ only as a prior for the descriptor matching of section 5.3, which decides (``doc
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cycles.descriptor import parabolic_offset
 
+if TYPE_CHECKING:
+    from cycles._types import FloatArray
+
 __all__ = ["acf_candidates", "principal_subspace"]
 
 
-def principal_subspace(z: np.ndarray, r: int, rng: np.random.Generator) -> np.ndarray:
+def principal_subspace(z: FloatArray, r: int, rng: np.random.Generator) -> FloatArray:
     """``z`` projected on (about) its top-``r`` principal subspace: same row distances up to the
     variance left out. A randomised range finder (Halko et al. 2011)."""
     d = z.shape[1]
@@ -30,10 +34,11 @@ def principal_subspace(z: np.ndarray, r: int, rng: np.random.Generator) -> np.nd
     q, _ = np.linalg.qr(z @ omega)
     b = q.T @ z
     ub, s, _ = np.linalg.svd(b, full_matrices=False)
-    return (q @ ub[:, :r]) * s[:r]
+    projected: FloatArray = (q @ ub[:, :r]) * s[:r]
+    return projected
 
 
-def acf_candidates(feat: np.ndarray, lo: int, hi: int, limit: int) -> list[float]:
+def acf_candidates(feat: FloatArray, lo: int, hi: int, limit: int) -> list[float]:
     """Lags (samples, sub-sample refined) of the highest peaks of the summed autocorrelation of
     ``feat``, in increasing lag order."""
     n = feat.shape[0]

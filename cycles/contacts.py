@@ -14,23 +14,28 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import splantider, splev, splrep
 
 from cycles._checks import finite_array, loop_frames, positive_finite, unit_vector
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from cycles._types import BoolArray, FloatArray
+
 __all__ = ["ContactResult", "contact_intervals", "fix_sliding", "project_to_plane"]
 
 
 def project_to_plane(
-    P: np.ndarray,
-    point: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
-    normal: Sequence[float] | np.ndarray = (0.0, 1.0, 0.0),
+    P: FloatArray,
+    point: Sequence[float] | FloatArray = (0.0, 0.0, 0.0),
+    normal: Sequence[float] | FloatArray = (0.0, 1.0, 0.0),
     eps: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[FloatArray, BoolArray]:
     """Snap the points on or below a plane onto it: ``p <- p - ((p - p0) . n) n``.
 
     A point is in contact when its signed distance ``(p - p0) . n`` (``n`` normalised) is at most
@@ -66,7 +71,7 @@ def project_to_plane(
     return out, mask
 
 
-def contact_intervals(mask: np.ndarray) -> list[tuple[int, int]]:
+def contact_intervals(mask: BoolArray | Sequence[bool]) -> list[tuple[int, int]]:
     """The runs of consecutive contact frames of a loop, merged across the seam.
 
     ``mask`` covers the loop's ``n`` distinct frames (frame ``n`` would be frame 0 again). Each run is a
@@ -117,25 +122,25 @@ class ContactResult:
         displacement: ``(3,)`` root travel per cycle, ``-integral of lam over the period``.
     """
 
-    items: dict[str, np.ndarray]
-    root: np.ndarray
-    lam: np.ndarray
+    items: dict[str, FloatArray]
+    root: FloatArray
+    lam: FloatArray
     intervals: dict[str, list[tuple[int, int]]]
     scales: dict[str, list[float]] = field(default_factory=dict)
-    displacement: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    displacement: FloatArray = field(default_factory=lambda: np.zeros(3))
 
 
 class _PeriodicVelocity:
     """A periodic in-plane velocity curve ``lam(t)`` and its running integral ``int_0^t lam``."""
 
-    def __init__(self, times: np.ndarray, samples: np.ndarray, period: float, smoothing: float) -> None:
+    def __init__(self, times: FloatArray, samples: FloatArray, period: float, smoothing: float) -> None:
         # samples: (k, 2) plane coordinates at the distinct times (0 <= times < period).
         self.period = period
         self._t0 = 0.0
         self._cycle = np.zeros(2)
-        self._const: np.ndarray | None = None
-        self._tck: list[tuple[np.ndarray, np.ndarray, int]] = []
-        self._anti: list[tuple[np.ndarray, np.ndarray, int]] = []
+        self._const: FloatArray | None = None
+        self._tck: list[tuple[FloatArray, FloatArray, int]] = []
+        self._anti: list[tuple[FloatArray, FloatArray, int]] = []
         if samples.shape[0] < 4:
             self._const = samples.mean(axis=0) if samples.shape[0] else np.zeros(2)
             return
@@ -154,32 +159,32 @@ class _PeriodicVelocity:
         self._t0 = float(times[0])
         self._cycle = np.array([float(splev(self._t0 + period, a) - splev(self._t0, a)) for a in self._anti])
 
-    def _wrap(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _wrap(self, t: FloatArray) -> tuple[FloatArray, FloatArray]:
         loops = np.floor((t - self._t0) / self.period)
         return t - loops * self.period, loops
 
-    def value(self, t: np.ndarray) -> np.ndarray:
+    def value(self, t: FloatArray) -> FloatArray:
         """``(len(t), 2)`` velocity at times ``t`` (any real values)."""
         if self._const is not None:
             return np.broadcast_to(self._const, (t.size, 2)).copy()
         tt, _ = self._wrap(t)
         return np.column_stack([splev(tt, tck) for tck in self._tck])
 
-    def _primitive(self, t: np.ndarray) -> np.ndarray:
+    def _primitive(self, t: FloatArray) -> FloatArray:
         """A continuous antiderivative on the whole real line (it grows by one loop's integral per loop)."""
         tt, loops = self._wrap(t)
         return np.column_stack(
             [splev(tt, anti) + loops * cycle for anti, cycle in zip(self._anti, self._cycle, strict=True)]
         )
 
-    def integral(self, t: np.ndarray) -> np.ndarray:
+    def integral(self, t: FloatArray) -> FloatArray:
         """``(len(t), 2)`` integral of the velocity from 0 to each ``t`` (any real values)."""
         if self._const is not None:
             return np.outer(t, self._const)
         return np.asarray(self._primitive(t) - self._primitive(np.zeros(1)))
 
 
-def _plane_basis(n: np.ndarray) -> np.ndarray:
+def _plane_basis(n: FloatArray) -> FloatArray:
     """``(2, 3)`` orthonormal in-plane axes for unit normal ``n``."""
     helper = np.eye(3)[int(np.argmin(np.abs(n)))]
     u = np.cross(n, helper)
@@ -191,23 +196,23 @@ def _plane_basis(n: np.ndarray) -> np.ndarray:
 class _ContactMap:
     """The affine map ``p -> centre + M (p - centre)`` that re-scales the flight next to one contact."""
 
-    centre: np.ndarray
-    matrix: np.ndarray
+    centre: FloatArray
+    matrix: FloatArray
     first: int  # first contact frame (unwrapped)
     last: int  # last contact frame (unwrapped)
 
-    def __call__(self, p: np.ndarray) -> np.ndarray:
+    def __call__(self, p: FloatArray) -> FloatArray:
         return np.asarray(self.centre + (p - self.centre) @ self.matrix.T)
 
 
 def _rebuild_item(
-    p: np.ndarray,
+    p: FloatArray,
     runs: list[tuple[int, int]],
     lam: _PeriodicVelocity,
-    basis: np.ndarray,
-    n: np.ndarray,
+    basis: FloatArray,
+    n: FloatArray,
     dt: float,
-) -> tuple[np.ndarray, list[float]]:
+) -> tuple[FloatArray, list[float]]:
     """Steps 3-4 of ``fix_sliding`` for one item: integrate ``lam`` over its contacts, re-scale its flights.
 
     Args:
@@ -226,13 +231,14 @@ def _rebuild_item(
     if not runs:
         return out, []
 
-    def integral(t: np.ndarray) -> np.ndarray:
+    def integral(t: FloatArray) -> FloatArray:
         return np.asarray(lam.integral(t) @ basis)
 
     maps: list[_ContactMap] = []
     scales: list[float] = []
     for start, stop in runs:
         frames = np.arange(start, stop)
+        frame_t = np.arange(start, stop, dtype=np.float64) * dt
         lo, hi = start, stop - 1
         mid = 0.5 * (lo + hi)
         f = math.floor(mid)
@@ -240,12 +246,12 @@ def _rebuild_item(
         centre_tan = centre - (centre @ n) * n
         at_mid = integral(np.array([mid * dt]))
         # eq. 5.12 from the midpoint: in-plane part integrated, height kept (on the plane).
-        rebuilt = centre_tan + (integral(frames * dt) - at_mid) + np.outer(p[frames % m] @ n, n)
+        rebuilt = centre_tan + (integral(frame_t) - at_mid) + np.outer(p[frames % m] @ n, n)
         out[frames % m] = rebuilt
         if stop - start >= m:  # in contact all around: the closing frame continues the integration
             out[m] = centre_tan + (integral(np.array([m * dt])) - at_mid)[0] + (p[0] @ n) * n
         # s_l: how much the contact's extent along d = mean lam direction changed.
-        mean_lam = (lam.value(frames * dt) @ basis).mean(axis=0)
+        mean_lam = (lam.value(frame_t) @ basis).mean(axis=0)
         norm = float(np.linalg.norm(mean_lam))
         s_l, d = 1.0, np.zeros(3)
         if norm > 1e-12 and hi > lo:
@@ -280,14 +286,14 @@ def _rebuild_item(
 
 
 def fix_sliding(
-    items: Mapping[str, np.ndarray],
-    root: np.ndarray,
+    items: Mapping[str, FloatArray],
+    root: FloatArray,
     period: float,
-    point: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
-    normal: Sequence[float] | np.ndarray = (0.0, 1.0, 0.0),
+    point: Sequence[float] | FloatArray = (0.0, 0.0, 0.0),
+    normal: Sequence[float] | FloatArray = (0.0, 1.0, 0.0),
     eps: float = 0.0,
     smoothing: float = 0.0,
-    contacts: Mapping[str, np.ndarray] | None = None,
+    contacts: Mapping[str, BoolArray] | None = None,
 ) -> ContactResult:
     """Make items in contact with a plane stop sliding, and move the root so the character travels.
 
@@ -339,7 +345,7 @@ def fix_sliding(
     if base.shape[1] != 3 or base.shape[0] < 4:
         raise ValueError(f"root must be (m + 1, 3) with m >= 3, got shape {base.shape}")
     m = base.shape[0] - 1
-    rel: dict[str, np.ndarray] = {}
+    rel: dict[str, FloatArray] = {}
     for name, arr in items.items():
         a = finite_array(arr, f"items[{name!r}]", (2,))
         if a.shape != base.shape:
@@ -357,7 +363,7 @@ def fix_sliding(
     e = float(eps)
     if not math.isfinite(e):
         raise ValueError("eps must be finite")
-    given: dict[str, np.ndarray] = {}
+    given: dict[str, BoolArray] = {}
     for name, marks in (contacts or {}).items():
         if name not in rel:
             raise ValueError(f"contacts names {name!r}, which is not an item")
@@ -371,9 +377,9 @@ def fix_sliding(
     basis = _plane_basis(n)  # rows u, v
 
     # 1. Contacts, in world space, on the distinct frames 0..m-1.
-    projected: dict[str, np.ndarray] = {}
+    projected: dict[str, FloatArray] = {}
     intervals: dict[str, list[tuple[int, int]]] = {}
-    masks: dict[str, np.ndarray] = {}
+    masks: dict[str, BoolArray] = {}
     for name, a in rel.items():
         world = base[:m] + a[:m]
         if name in given:
@@ -411,7 +417,7 @@ def fix_sliding(
     lam_curve = _PeriodicVelocity(times[:m][have], total[have] / count[have, None], T, sm)
 
     # 3-4. Rebuild each item's contacts and re-scale its flights.
-    out_items: dict[str, np.ndarray] = {}
+    out_items: dict[str, FloatArray] = {}
     scales: dict[str, list[float]] = {}
     for name, p in projected.items():
         out_items[name], scales[name] = _rebuild_item(p, intervals[name], lam_curve, basis, n, dt)

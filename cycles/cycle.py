@@ -11,10 +11,13 @@ import csv
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+
+if TYPE_CHECKING:
+    from cycles._types import FloatArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,18 +46,18 @@ class Cycle:
     """
 
     period_s: float
-    times_s: np.ndarray
-    values: np.ndarray
+    times_s: FloatArray
+    values: FloatArray
     channels: tuple[str, ...]
     loops: int
-    cuts_s: np.ndarray
-    loop_spans_s: np.ndarray
+    cuts_s: FloatArray
+    loop_spans_s: FloatArray
     confidence: float
     consistency: float
     seed_agreement: float
     raw_period_s: float
     closure_error: float
-    aligned: np.ndarray | None = None
+    aligned: FloatArray | None = None
     quaternions: tuple[tuple[int, int, int, int], ...] = ()
     notes: tuple[str, ...] = field(default_factory=tuple)
     elapsed_ms: float = 0.0
@@ -63,7 +66,7 @@ class Cycle:
     def _spline(self) -> CubicSpline:
         return CubicSpline(self.times_s, self.values, bc_type="periodic", axis=0)
 
-    def at(self, t: float | np.ndarray) -> np.ndarray:
+    def at(self, t: float | FloatArray) -> FloatArray:
         """The cycle at time(s) ``t`` (seconds, any real value: it loops). Shape ``(C,)`` or ``(len(t), C)``."""
         tt = np.mod(np.asarray(t, np.float64), self.period_s)
         out = np.asarray(self._spline(tt))

@@ -8,13 +8,18 @@ The descriptor is blind to constant offsets and, on purpose, not rotation invari
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-#: The thesis's descriptor radius (L954).
+if TYPE_CHECKING:
+    from cycles._types import FloatArray, IntArray
+
+#: The descriptor radius k of eq. 5.1 (Ciccone 2019, section 5.3 uses k = 5).
 K_RADIUS = 5
 
 
-def derivative(x: np.ndarray, t: np.ndarray | float) -> np.ndarray:
+def derivative(x: FloatArray, t: FloatArray | float) -> FloatArray:
     """Central differences ``(x[j+1] - x[j-1]) / (t[j+1] - t[j-1])`` (eq. 5.1), one-sided at the ends.
 
     Args:
@@ -24,7 +29,9 @@ def derivative(x: np.ndarray, t: np.ndarray | float) -> np.ndarray:
     n = x.shape[0]
     if n < 2:
         raise ValueError("a derivative needs at least 2 samples")
-    tt = np.arange(n) * float(t) if np.isscalar(t) else np.asarray(t, np.float64)
+    tt = np.asarray(t, np.float64)
+    if tt.ndim == 0:
+        tt = np.arange(n, dtype=np.float64) * float(tt)
     d = np.empty_like(x, dtype=np.float64)
     if n > 2:
         d[1:-1] = (x[2:] - x[:-2]) / (tt[2:] - tt[:-2])[:, None]
@@ -33,7 +40,7 @@ def derivative(x: np.ndarray, t: np.ndarray | float) -> np.ndarray:
     return d
 
 
-def window_sums(x: np.ndarray, k: int = K_RADIUS) -> np.ndarray:
+def window_sums(x: FloatArray, k: int = K_RADIUS) -> FloatArray:
     """``[sum_{|j-i|<=r} x_j for r in 0..k]`` side by side: ``(n, (k + 1) N)``; windows are truncated at
     the ends."""
     n, m = x.shape
@@ -48,31 +55,32 @@ def window_sums(x: np.ndarray, k: int = K_RADIUS) -> np.ndarray:
     return out
 
 
-def descriptors(x: np.ndarray, t: np.ndarray | float, k: int = K_RADIUS) -> tuple[np.ndarray, np.ndarray]:
+def descriptors(x: FloatArray, t: FloatArray | float, k: int = K_RADIUS) -> tuple[FloatArray, FloatArray]:
     """``(h, g)``, each ``(n, (k + 1) N)``: eq. 5.2 for every sample of ``x`` ``(n, N)``."""
     d1 = derivative(x, t)
     d2 = derivative(d1, t)
     return window_sums(d1, k), window_sums(d2, k)
 
 
-def distances_to(h: np.ndarray, g: np.ndarray, i: int | np.ndarray, j: slice | np.ndarray | None = None) -> np.ndarray:
+def distances_to(h: FloatArray, g: FloatArray, i: int | IntArray, j: slice | IntArray | None = None) -> FloatArray:
     """``d_D(i, j)`` for one ``i`` (or several, giving one row each) against all ``j`` (or the ``j`` given)."""
     hj = h if j is None else h[j]
     gj = g if j is None else g[j]
     hi = h[i]
     gi = g[i]
     if np.ndim(i) == 0:
-        return np.sqrt(np.sum((hj - hi) ** 2, axis=1) * np.sum((gj - gi) ** 2, axis=1))
-    dh = np.sum((hj[None, :, :] - hi[:, None, :]) ** 2, axis=2)
-    dg = np.sum((gj[None, :, :] - gi[:, None, :]) ** 2, axis=2)
+        one: FloatArray = np.sqrt(np.sum((hj - hi) ** 2, axis=1) * np.sum((gj - gi) ** 2, axis=1))
+        return one
+    dh: FloatArray = np.sum((hj[None, :, :] - hi[:, None, :]) ** 2, axis=2)
+    dg: FloatArray = np.sum((gj[None, :, :] - gi[:, None, :]) ** 2, axis=2)
     return np.sqrt(dh * dg)
 
 
-def local_minima(d: np.ndarray, radius: int = 2) -> np.ndarray:
+def local_minima(d: FloatArray, radius: int = 2) -> IntArray:
     """Indices j where ``d[j]`` is the minimum of ``d`` over ``[j - radius, j + radius]``."""
     n = d.size
     if n == 0:
-        return np.zeros(0, np.int64)
+        return np.zeros(0, np.intp)
     pad = np.concatenate([np.full(radius, np.inf), d, np.full(radius, np.inf)])
     win = np.lib.stride_tricks.sliding_window_view(pad, 2 * radius + 1)
     return np.flatnonzero(d <= win.min(axis=1))
@@ -86,7 +94,7 @@ def parabolic_offset(y0: float, y1: float, y2: float) -> float:
     return float(min(0.5, max(-0.5, 0.5 * (y0 - y2) / den)))
 
 
-def otsu_threshold(values: np.ndarray) -> float:
+def otsu_threshold(values: FloatArray) -> float:
     """Otsu's threshold splitting ``values`` into a low and a high class (callers keep the low one): the
     split of the sorted values that maximises the between-class variance, placed midway between the
     two values it separates. Exact, for the few dozen values it is used on."""
@@ -104,8 +112,8 @@ def otsu_threshold(values: np.ndarray) -> float:
     return float(0.5 * (v[i] + v[i + 1]))
 
 
-def distance_rows(h: np.ndarray, g: np.ndarray, rows: np.ndarray, cols: slice | np.ndarray | None = None,
-                  soft: float = 0.0) -> np.ndarray:
+def distance_rows(h: FloatArray, g: FloatArray, rows: IntArray, cols: slice | IntArray | None = None,
+                  soft: float = 0.0) -> FloatArray:
     """``d_D(i, j)`` for every ``i`` in ``rows`` against every ``j`` in ``cols`` (default all), as one matrix
     ``(len(rows), len(cols))``; computed with inner products, so its cost does not grow with a Python loop.
 
@@ -118,8 +126,8 @@ def distance_rows(h: np.ndarray, g: np.ndarray, rows: np.ndarray, cols: slice | 
     hj = h if cols is None else h[cols]
     gj = g if cols is None else g[cols]
     hi, gi = h[rows], g[rows]
-    dh = np.sum(hj * hj, axis=1)[None, :] + np.sum(hi * hi, axis=1)[:, None] - 2.0 * (hi @ hj.T)
-    dg = np.sum(gj * gj, axis=1)[None, :] + np.sum(gi * gi, axis=1)[:, None] - 2.0 * (gi @ gj.T)
+    dh: FloatArray = np.sum(hj * hj, axis=1)[None, :] + np.sum(hi * hi, axis=1)[:, None] - 2.0 * (hi @ hj.T)
+    dg: FloatArray = np.sum(gj * gj, axis=1)[None, :] + np.sum(gi * gi, axis=1)[:, None] - 2.0 * (gi @ gj.T)
     fh = np.sqrt(np.maximum(dh, 0.0))
     fg = np.sqrt(np.maximum(dg, 0.0))
     if soft <= 0:

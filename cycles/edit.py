@@ -27,6 +27,7 @@ the first (the form a ``Cycle`` stores); edits keep the two equal.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -34,6 +35,9 @@ from scipy.spatial.transform import Rotation
 from cycles._checks import as_int, finite_array, loop_frames, positive_finite
 from cycles.contacts import ContactResult, contact_intervals, fix_sliding, project_to_plane
 from cycles.retiming import retime, retimed_frames
+
+if TYPE_CHECKING:
+    from cycles._types import FloatArray
 
 __all__ = [
     "ContactResult",
@@ -52,7 +56,7 @@ __all__ = [
 EDGE_WEIGHT = 0.01
 
 
-def falloff_weights(m: int, i: int, tau: int, sigma: float | None = None) -> np.ndarray:
+def falloff_weights(m: int, i: int, tau: int, sigma: float | None = None) -> FloatArray:
     """How much an edit at frame ``i`` moves each frame of a loop of ``m`` frames (eq. 5.6).
 
     Frame ``j`` gets ``exp(-sigma * dist(i, j)^2)`` if its circular distance ``dist`` to ``i`` (frames
@@ -91,7 +95,7 @@ def falloff_weights(m: int, i: int, tau: int, sigma: float | None = None) -> np.
     j = np.arange(m)
     raw = np.abs(j - i)
     dist = np.minimum(raw, m - raw)
-    w: np.ndarray = np.exp(-sigma * dist.astype(np.float64) ** 2)
+    w: FloatArray = np.exp(-sigma * dist.astype(np.float64) ** 2)
     w[dist > tau] = 0.0
     return w
 
@@ -105,14 +109,14 @@ def _edit_frame(i: int, m: int, closed: bool) -> int:
 
 
 def edit_translation(
-    P: np.ndarray,
+    P: FloatArray,
     i: int,
-    delta: np.ndarray | float,
+    delta: FloatArray | float,
     tau: int,
     sigma: float | None = None,
     *,
     closed: bool = False,
-) -> np.ndarray:
+) -> FloatArray:
     """Move frame ``i`` of a curve by ``delta`` and its neighbours by less (eq. 5.6).
 
     Frame ``j`` moves by ``w_j * delta`` with ``w = falloff_weights(m, i, tau, sigma)``. Works for
@@ -147,14 +151,14 @@ def edit_translation(
 
 
 def edit_rotation(
-    Q: np.ndarray,
+    Q: FloatArray,
     i: int,
-    dq: np.ndarray,
+    dq: FloatArray,
     tau: int,
     sigma: float | None = None,
     *,
     closed: bool = False,
-) -> np.ndarray:
+) -> FloatArray:
     """Rotate frame ``i`` of a rotation curve by ``dq`` and its neighbours by a fraction of it.
 
     Frame ``j`` becomes ``exp(w_j log dR) R_j``: the same axis as ``dR``, ``w_j`` of its angle, applied
@@ -204,14 +208,14 @@ def edit_rotation(
 
 
 def edit_scale(
-    S: np.ndarray,
+    S: FloatArray,
     i: int,
-    factor: np.ndarray | float,
+    factor: FloatArray | float,
     tau: int,
     sigma: float | None = None,
     *,
     closed: bool = False,
-) -> np.ndarray:
+) -> FloatArray:
     """Scale frame ``i`` of a scale curve by ``factor`` and its neighbours by less, in log space.
 
     Frame ``j`` becomes ``S_j * factor ** w_j`` (``log S_j += w_j log factor``), so positive scales stay

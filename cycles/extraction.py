@@ -49,8 +49,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import signal
@@ -70,6 +70,13 @@ from cycles.cycle import Cycle
 from cycles.descriptor import K_RADIUS, descriptors, distance_rows, parabolic_offset, window_sums
 from cycles.matching import Chain, follow_chain, loops_of, raw_period, seed_matches
 from cycles.prepare import Prepared, at_positions, prepare, to_input
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from numpy.typing import ArrayLike
+
+    from cycles._types import BoolArray, FloatArray, IntArray
 
 __all__ = ["ExtractOptions", "extract"]
 
@@ -156,7 +163,7 @@ class _Candidate:
     period: float
     hit_rate: float
     alignment: Alignment
-    errors: np.ndarray
+    errors: FloatArray
     plain: float = 0.0
     coverage: float = 0.0
 
@@ -165,8 +172,8 @@ class _Candidate:
         return self.consistency * self.hit_rate
 
 
-def _evaluate(h: np.ndarray, g: np.ndarray, dseed: np.ndarray, thrs: list[float], z: np.ndarray, tau: float,
-              seeds: np.ndarray, opts: ExtractOptions, margin: int, total_var: float) -> _Candidate | None:
+def _evaluate(h: FloatArray, g: FloatArray, dseed: FloatArray, thrs: list[float], z: FloatArray, tau: float,
+              seeds: IntArray, opts: ExtractOptions, margin: int, total_var: float) -> _Candidate | None:
     followed = (follow_chain(dseed[i], int(s), thrs[i], tau, opts.search, opts.max_misses, margin)
                 for i, s in enumerate(seeds))
     chains = [c for c in followed if c is not None]
@@ -206,7 +213,7 @@ def _evaluate(h: np.ndarray, g: np.ndarray, dseed: np.ndarray, thrs: list[float]
                       hit_rate=hit, alignment=al, errors=errors, plain=r_plain)
 
 
-def extract(t_s: Sequence[float] | np.ndarray, values: Sequence[Sequence[float]] | np.ndarray, *,
+def extract(t_s: ArrayLike, values: ArrayLike, *,
             channels: Sequence[str] | None = None, quaternions: Sequence[Sequence[int]] = (),
             angles: Sequence[int] = (), angle_unit: str = "rad", seed: int = 0,
             options: ExtractOptions | None = None) -> Cycle:
@@ -358,9 +365,9 @@ def _extract(work: Prepared, names: tuple[str, ...], opts: ExtractOptions, seed:
                    total_var, t_min, t_max, sd, active)
 
 
-def _finish(work: Prepared, x: np.ndarray, factor: int, z: np.ndarray, h: np.ndarray, g: np.ndarray, cand: _Candidate,
-            seeds: np.ndarray, matches: list[np.ndarray], opts: ExtractOptions, names: tuple[str, ...],
-            margin: int, total_var: float, t_min: int, t_max: int, sd: np.ndarray, active: np.ndarray) -> Cycle:
+def _finish(work: Prepared, x: FloatArray, factor: int, z: FloatArray, h: FloatArray, g: FloatArray, cand: _Candidate,
+            seeds: IntArray, matches: list[IntArray], opts: ExtractOptions, names: tuple[str, ...],
+            margin: int, total_var: float, t_min: int, t_max: int, sd: FloatArray, active: BoolArray) -> Cycle:
     notes = list(work.notes)
     # Refine the cut points against the first average loop (a matched filter over a quarter loop each
     # side, instead of the seed's single instant), then cut, align and judge again.
@@ -417,7 +424,7 @@ def _finish(work: Prepared, x: np.ndarray, factor: int, z: np.ndarray, h: np.nda
                  notes=tuple(notes))
 
 
-def _period(work: Prepared, z: np.ndarray, cand: _Candidate, al: Alignment, opts: ExtractOptions,
+def _period(work: Prepared, z: FloatArray, cand: _Candidate, al: Alignment, opts: ExtractOptions,
             total_var: float) -> float:
     """The refined period in seconds (see the module docstring, step 7)."""
     loops = al.loops
@@ -463,10 +470,11 @@ def _period(work: Prepared, z: np.ndarray, cand: _Candidate, al: Alignment, opts
             continue   # nothing there, or more than a loop of something else (a pause, a turn)
         s01 = np.linspace(0.0, 1.0, seg.shape[0])[None, :]
 
-        def misfit(fr: np.ndarray, seg: np.ndarray = seg, s01: np.ndarray = s01, end: str = end) -> np.ndarray:
+        def misfit(fr: FloatArray, seg: FloatArray = seg, s01: FloatArray = s01, end: str = end) -> FloatArray:
             ph = (1.0 - fr[:, None] * (1.0 - s01)) if end == "head" else fr[:, None] * s01
             fit = at_positions(mean0, ph.reshape(-1) * m0).reshape(fr.size, seg.shape[0], -1)
-            return np.mean(np.sum((fit - seg[None]) ** 2, axis=2), axis=1)
+            out: FloatArray = np.mean(np.sum((fit - seg[None]) ** 2, axis=2), axis=1)
+            return out
 
         # the share is near the segment's length over the period (tempo varies by some percent)
         f_exp = seg.shape[0] / per

@@ -14,10 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cycles.descriptor import otsu_threshold, parabolic_offset
+
+if TYPE_CHECKING:
+    from cycles._types import FloatArray, IntArray
 
 __all__ = ["Chain", "follow_chain", "loops_of", "raw_period", "seed_matches", "smallest_feasible_period"]
 
@@ -25,8 +29,8 @@ __all__ = ["Chain", "follow_chain", "loops_of", "raw_period", "seed_matches", "s
 @dataclass
 class Chain:
     seed: int
-    cuts: np.ndarray       # fractional positions, increasing
-    ks: np.ndarray         # loop index of each cut (seed = 0)
+    cuts: FloatArray       # fractional positions, increasing
+    ks: IntArray           # loop index of each cut (seed = 0)
     period: float          # samples, this seed's estimate
     thr: float
 
@@ -37,7 +41,7 @@ class Chain:
         return int(np.sum(np.diff(self.ks) == 1)) / max(1, int(self.ks[-1] - self.ks[0]))
 
 
-def seed_matches(dseed: np.ndarray, seeds: np.ndarray, k: int) -> list[tuple[np.ndarray, float]]:
+def seed_matches(dseed: FloatArray, seeds: IntArray, k: int) -> list[tuple[IntArray, float]]:
     """Each seed's matches J_i (eq. 5.3): local minima of d_D(seed, .) outside the trivial neighbourhood,
     below the 25th percentile, with outliers pruned by Otsu's split of their log distances (the
     low class is kept); plus the distance threshold that pruning implies."""
@@ -49,7 +53,7 @@ def seed_matches(dseed: np.ndarray, seeds: np.ndarray, k: int) -> list[tuple[np.
                    float(thr_all[i])) for i, s in enumerate(seeds)]
 
 
-def _prune(d: np.ndarray, mins: np.ndarray, thr: float) -> tuple[np.ndarray, float]:
+def _prune(d: FloatArray, mins: IntArray, thr: float) -> tuple[IntArray, float]:
     if mins.size >= 4:
         # floored well below any real match: exact zeros of the product (a noise-free sine's mirror
         # instants) must not become a class of their own and leave the threshold at nothing
@@ -61,7 +65,7 @@ def _prune(d: np.ndarray, mins: np.ndarray, thr: float) -> tuple[np.ndarray, flo
     return mins, thr
 
 
-def follow_chain(d: np.ndarray, seed: int, thr: float, tau: float, search: float, max_misses: int,
+def follow_chain(d: FloatArray, seed: int, thr: float, tau: float, search: float, max_misses: int,
                  margin: int) -> Chain | None:
     n = d.shape[0]
     cuts = [float(seed)]
@@ -124,7 +128,7 @@ def loops_of(chain: Chain, tau: float) -> list[tuple[float, float]]:
     return out
 
 
-def smallest_feasible_period(matches: np.ndarray, seed: float, first: float, last: float, t_min: int,
+def smallest_feasible_period(matches: FloatArray, seed: float, first: float, last: float, t_min: int,
                              t_max: int) -> int | None:
     """Eq. 5.3 with the spec's bounds: the smallest integer period T (samples) such that for every k
     from ceil((first - seed) / T) to floor((last - seed) / T) some match lies within ceil(T / 8) of
@@ -156,7 +160,7 @@ def smallest_feasible_period(matches: np.ndarray, seed: float, first: float, las
     return int(periods[int(np.argmax(ok))])
 
 
-def raw_period(matches: list[np.ndarray], seeds: np.ndarray, n: int, margin: int, t_min: int, t_max: int) -> float:
+def raw_period(matches: list[IntArray], seeds: IntArray, n: int, margin: int, t_min: int, t_max: int) -> float:
     found = []
     for mins, s in zip(matches, seeds, strict=True):
         j = np.concatenate([mins, [s]]).astype(np.float64)

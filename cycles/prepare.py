@@ -12,13 +12,18 @@ interpolation the other steps share.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from capture.errors import NoPeriodFoundError
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from cycles._types import FloatArray
 
 __all__ = ["Prepared", "at_positions", "interp_rows", "prepare", "to_input"]
 
@@ -27,14 +32,14 @@ __all__ = ["Prepared", "at_positions", "interp_rows", "prepare", "to_input"]
 class Prepared:
     t0: float
     dt: float
-    x: np.ndarray                     # (n, W) working columns
+    x: FloatArray                     # (n, W) working columns
     columns: list[tuple[str, list[int], list[int]]]  # (kind, input cols, working cols)
     q_refs: dict[int, Rotation]       # working col start -> reference rotation
     angle_scale: float
     notes: list[str]
 
 
-def prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]], angles: Sequence[int],
+def prepare(t: FloatArray, v: FloatArray, quaternions: Sequence[Sequence[int]], angles: Sequence[int],
              angle_unit: str, gap_factor: float, min_gap_s: float = 0.1) -> Prepared:
     c = v.shape[1]
     notes: list[str] = []
@@ -90,7 +95,7 @@ def prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]], 
 
     columns: list[tuple[str, list[int], list[int]]] = []
     q_refs: dict[int, Rotation] = {}
-    blocks: list[tuple[list[int], np.ndarray]] = []   # (working columns, values) of quats and angles
+    blocks: list[tuple[list[int], FloatArray]] = []   # (working columns, values) of quats and angles
     lin_in: list[int] = []
     lin_w: list[int] = []
     w = 0
@@ -141,23 +146,24 @@ def prepare(t: np.ndarray, v: np.ndarray, quaternions: Sequence[Sequence[int]], 
                  angle_scale=angle_scale, notes=notes)
 
 
-def interp_rows(t: np.ndarray, x: np.ndarray, at: np.ndarray) -> np.ndarray:
+def interp_rows(t: FloatArray, x: FloatArray, at: FloatArray) -> FloatArray:
     """Linear interpolation of every column of ``x`` (sampled at ``t``) at times ``at``."""
     j = np.clip(np.searchsorted(t, at, side="right"), 1, t.size - 1)
     w = ((at - t[j - 1]) / (t[j] - t[j - 1]))[:, None]
     return x[j - 1] * (1.0 - w) + x[j] * w
 
 
-def at_positions(x: np.ndarray, pos: np.ndarray) -> np.ndarray:
+def at_positions(x: FloatArray, pos: FloatArray) -> FloatArray:
     """Rows of ``x`` at fractional sample positions ``pos`` (linear interpolation)."""
     n = x.shape[0]
     p = np.clip(pos, 0.0, n - 1.0)
     j = np.minimum(p.astype(np.int64), n - 2)
     w = (p - j)[:, None]
-    return x[j] * (1.0 - w) + x[j + 1] * w
+    rows: FloatArray = x[j] * (1.0 - w) + x[j + 1] * w
+    return rows
 
 
-def to_input(work: Prepared, y: np.ndarray, c: int) -> np.ndarray:
+def to_input(work: Prepared, y: FloatArray, c: int) -> FloatArray:
     """Working columns back to the input's columns and units."""
     out = np.empty((y.shape[0], c))
     for kind, cols, wc in work.columns:

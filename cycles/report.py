@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import math
 import textwrap
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cycles.cycle import Cycle
+if TYPE_CHECKING:
+    from cycles.cycle import Cycle
 
 LOOP_COLOR = "#4c72b0"
 CYCLE_COLOR = "#dd5a12"

@@ -12,7 +12,7 @@ smoothness term wraps around the loop; frame 0 is pinned unless it is dragged), 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -22,10 +22,15 @@ from scipy.sparse.linalg import spsolve
 
 from cycles._checks import as_int, finite_array, loop_frames, positive_finite
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from cycles._types import BoolArray, FloatArray
+
 __all__ = ["retime", "retimed_frames"]
 
 
-def _check_times(t: object, name: str, *, strict: bool) -> np.ndarray:
+def _check_times(t: object, name: str, *, strict: bool) -> FloatArray:
     arr = finite_array(t, name, (1,))
     if arr.size < 3:
         raise ValueError(f"{name} needs at least 3 frame times (frames 0..m with m >= 2)")
@@ -40,11 +45,11 @@ def _check_times(t: object, name: str, *, strict: bool) -> np.ndarray:
 
 
 def _retime_system(
-    t: np.ndarray,
+    t: FloatArray,
     constraints: dict[int, float],
     period: float,
     weights: tuple[float, float, float, float],
-) -> tuple[sp.csr_matrix, np.ndarray, bool]:
+) -> tuple[sp.csr_matrix, FloatArray, bool]:
     """The least-squares system ``min |A x - b|^2`` of eq. 5.11 in the step variables.
 
     ``x = (d_0 .. d_{m-1}[, t*_0])``: the frame steps ``d_i = t*_{i+1} - t*_i`` and, when frame 0 is
@@ -82,7 +87,7 @@ def _retime_system(
     return A, np.concatenate([b_c, b_t, b_v, b_s]), free_start
 
 
-def _solve_on_free(A: sp.csr_matrix, b: np.ndarray, free: np.ndarray) -> np.ndarray:
+def _solve_on_free(A: sp.csr_matrix, b: FloatArray, free: BoolArray) -> FloatArray:
     """Exact least-squares solution for the ``free`` variables, the others held at 0.
 
     Uses the augmented system ``[[I, A_F], [A_F^T, 0]] [r; x_F] = [b; 0]`` (sparse LU), which is as
@@ -100,14 +105,14 @@ def _solve_on_free(A: sp.csr_matrix, b: np.ndarray, free: np.ndarray) -> np.ndar
 
 
 def retime(
-    t: np.ndarray,
+    t: FloatArray,
     constraints: Mapping[int, float],
     period: float | None = None,
     w_c: float = 1e4,
     w_t: float = 1e4,
     w_v: float = 1.0,
     w_s: float = 1.0,
-) -> np.ndarray:
+) -> FloatArray:
     """New frame times that meet dragged keypoint times while keeping the motion's timing (eq. 5.7-5.11).
 
     Minimises ``w_c E_C + w_t E_T + w_v E_V + w_s E_S`` over ``t* = (t*_0 .. t*_m)`` subject to
@@ -188,12 +193,12 @@ def retime(
 
 
 def retimed_frames(
-    values: np.ndarray,
-    t: np.ndarray,
-    t_star: np.ndarray,
+    values: FloatArray,
+    t: FloatArray,
+    t_star: FloatArray,
     *,
     quaternions: Sequence[tuple[int, int, int, int]] = (),
-) -> np.ndarray:
+) -> FloatArray:
     """The curve as played with new frame times: frame ``i`` shows it at source time ``t_star[i]``.
 
     The closed curve ``values`` (sampled at ``t``) is interpolated with a periodic cubic spline, and

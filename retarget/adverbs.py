@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, overload
+from typing import TYPE_CHECKING, Literal, Protocol, overload
 
 import numpy as np
 from scipy import linalg
@@ -40,7 +39,13 @@ from capture.quat import (
 from retarget.interpolation import RBF, MultiResolutionRBF
 from retarget.timeline import check_key_times, reorient, split_heading, verb_time
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from retarget._types import FloatArray, IntArray
+
 __all__ = [
+    "ClipSource",
     "CurveLayout",
     "Example",
     "Verb",
@@ -49,8 +54,6 @@ __all__ = [
     "example_storage",
     "mrbf_storage",
 ]
-
-Array = np.ndarray
 
 
 # --------------------------------------------------------------------------------------------------
@@ -138,7 +141,7 @@ class CurveLayout:
         self.periodic = bool(periodic)
         self.segments = self.num_cp if periodic else self.num_cp - 3
 
-    def span(self, t: Array) -> tuple[Array, Array, Array]:
+    def span(self, t: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
         """Active control points, weights and d(weights)/dt at canonical times.
 
         Args:
@@ -160,7 +163,7 @@ class CurveLayout:
         dpowers = np.concatenate([3.0 * f**2, 2.0 * f, np.ones_like(f), np.zeros_like(f)], axis=-1)
         return idx, powers @ _B.T, (dpowers @ _B.T) * self.segments
 
-    def design(self, t: Array) -> Array:
+    def design(self, t: FloatArray) -> FloatArray:
         """Design matrix: row s holds the weight of each control point at t_s.
 
         Args:
@@ -179,7 +182,7 @@ class CurveLayout:
 # Examples and verbs
 
 
-def _resample(times: Array, root_pos: Array, rotations: Array, T: Array) -> tuple[Array, Array]:
+def _resample(times: FloatArray, root_pos: FloatArray, rotations: FloatArray, T: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Linear root and slerped rotations at times T (clamped)."""
     Tc = np.clip(T, times[0], times[-1])
     i = np.clip(np.searchsorted(times, Tc, side="right") - 1, 0, times.size - 2)
@@ -187,6 +190,30 @@ def _resample(times: Array, root_pos: Array, rotations: Array, T: Array) -> tupl
     pos = (1.0 - f)[:, None] * root_pos[i] + f[:, None] * root_pos[i + 1]
     rot = quat_slerp(rotations[i], rotations[i + 1], np.repeat(f[:, None], rotations.shape[1], axis=1))
     return pos, rot
+
+
+class ClipSource(Protocol):
+    """What ``Example.from_clip`` reads from a clip (``retarget.skeleton.Clip`` is one); a ``name``
+    attribute, if it has one, labels the example."""
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the first frame to the last."""
+        ...
+
+    @property
+    def fps(self) -> float:
+        """Frames per second: ``from_clip`` samples one example sample per frame by default."""
+        ...
+
+    @property
+    def key_times(self) -> Sequence[float]:
+        """Increasing key-times from 0 to the duration."""
+        ...
+
+    def sample(self, t: float | FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Root position ``(..., 3)`` and local joint rotations ``(..., J, 4)`` at time(s) ``t``."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -202,11 +229,11 @@ class Example:
         name: label for messages.
     """
 
-    point: Array
-    times: Array
-    root_pos: Array
-    rotations: Array
-    key_times: Array
+    point: FloatArray
+    times: FloatArray
+    root_pos: FloatArray
+    rotations: FloatArray
+    key_times: FloatArray
     name: str = ""
 
     def __post_init__(self) -> None:
@@ -232,8 +259,9 @@ class Example:
         object.__setattr__(self, "key_times", k)
 
     @classmethod
-    def from_clip(cls, clip: Any, point: Sequence[float] | Array | float, *, samples: int | None = None) -> Example:
-        """An example from a ``retarget.skeleton.Clip`` (duck-typed: ``sample``, ``key_times``, ``duration``).
+    def from_clip(cls, clip: ClipSource, point: Sequence[float] | FloatArray | float, *,
+                  samples: int | None = None) -> Example:
+        """An example from a clip: a ``retarget.skeleton.Clip`` or anything else that is a ``ClipSource``.
 
         The clip is sampled through ``clip.sample(T)`` on a uniform grid over [0, duration].
 
@@ -279,12 +307,12 @@ class VerbFrame:
         t: (...,) canonical time.
     """
 
-    root_pos: Array
-    heading: Array
-    root_velocity: Array
-    heading_rate: Array
-    rotations: Array
-    t: Array
+    root_pos: FloatArray
+    heading: FloatArray
+    root_velocity: FloatArray
+    heading_rate: FloatArray
+    rotations: FloatArray
+    t: FloatArray
 
 
 class _Blend:
@@ -292,7 +320,7 @@ class _Blend:
 
     __slots__ = ("_coef_t", "_cp", "disp", "key_list", "key_times", "turn", "weights")
 
-    def __init__(self, weights: Array, small: Array, coef_t: Array) -> None:
+    def __init__(self, weights: FloatArray, small: FloatArray, coef_t: FloatArray) -> None:
         self.weights = weights
         self.disp = small[:3]
         self.turn = float(small[3])
@@ -301,10 +329,10 @@ class _Blend:
         self.key_times = k
         self.key_list: list[float] = k.tolist()
         self._coef_t = coef_t
-        self._cp: Array | None = None
+        self._cp: FloatArray | None = None
 
     @property
-    def cp(self) -> Array:
+    def cp(self) -> FloatArray:
         """(rows, C) blended control points (periodic layouts repeat the first 3 rows at the end)."""
         if self._cp is None:
             self._cp = self._coef_t @ self.weights
@@ -420,7 +448,7 @@ class Verb:
         self._cache: _Blend | None = None
 
     @staticmethod
-    def _left_matrices(q: Array) -> Array:
+    def _left_matrices(q: FloatArray) -> FloatArray:
         w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
         return np.stack(
             [
@@ -433,7 +461,7 @@ class Verb:
         )
 
     @staticmethod
-    def _unwrap(rv: Array) -> Array:
+    def _unwrap(rv: FloatArray) -> FloatArray:
         """Keep rotation-vector curves continuous in time where a joint passes pi from its reference.
 
         The hemisphere-consistent rotation vector jumps there (axis flip); v - 2 pi v/|v| or v + 2 pi v/|v|
@@ -467,18 +495,19 @@ class Verb:
         return out
 
     @staticmethod
-    def _references(rots: Array) -> Array:
+    def _references(rots: FloatArray) -> FloatArray:
         """Per-joint reference: hemisphere-aligned chordal mean of every sample of every example."""
         flat = rots.reshape(-1, rots.shape[2], 4)  # (n S, J, 4)
         first = flat[0]
         sign = np.where(np.sum(flat * first[None], axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
         mean = (flat * sign).sum(axis=0)
         norm = np.linalg.norm(mean, axis=-1, keepdims=True)
-        return np.where(norm > 1e-9, mean / np.maximum(norm, 1e-300), first)
+        ref: FloatArray = np.where(norm > 1e-9, mean / np.maximum(norm, 1e-300), first)
+        return ref
 
     # -- blending -------------------------------------------------------------------------------
 
-    def _blend(self, p: Array | Sequence[float] | float) -> _Blend:
+    def _blend(self, p: FloatArray | Sequence[float] | float) -> _Blend:
         pa = np.asarray(p, dtype=float)
         if pa.shape != (self.dim,):
             pa = np.atleast_1d(pa)
@@ -500,7 +529,7 @@ class Verb:
         self._cache_key, self._cache = key, blend
         return blend
 
-    def key_times(self, p: Array | Sequence[float] | float) -> Array:
+    def key_times(self, p: FloatArray | Sequence[float] | float) -> FloatArray:
         """Interpolated key-times at p (the guard: strictly increasing).
 
         Args:
@@ -514,7 +543,7 @@ class Verb:
         """
         return self._blend(p).key_times.copy()
 
-    def duration(self, p: Array | Sequence[float] | float) -> float:
+    def duration(self, p: FloatArray | Sequence[float] | float) -> float:
         """Interpolated duration T^d(p) (the last key-time; a cycle's period for periodic verbs).
 
         Args:
@@ -528,7 +557,7 @@ class Verb:
         """
         return float(self._blend(p).key_times[-1])
 
-    def displacement(self, p: Array | Sequence[float] | float) -> Array:
+    def displacement(self, p: FloatArray | Sequence[float] | float) -> FloatArray:
         """Root displacement over the whole motion (one cycle), in the start frame (Y = 0).
 
         Args:
@@ -542,7 +571,7 @@ class Verb:
         """
         return self._blend(p).disp.copy()
 
-    def net_turn(self, p: Array | Sequence[float] | float) -> float:
+    def net_turn(self, p: FloatArray | Sequence[float] | float) -> float:
         """Heading change over the whole motion.
 
         Args:
@@ -556,7 +585,7 @@ class Verb:
         """
         return self._blend(p).turn
 
-    def root_speed(self, p: Array | Sequence[float] | float) -> float:
+    def root_speed(self, p: FloatArray | Sequence[float] | float) -> float:
         """Mean horizontal root speed: |displacement_xz| / duration.
 
         Args:
@@ -571,7 +600,7 @@ class Verb:
         b = self._blend(p)
         return float(math.hypot(b.disp[0], b.disp[2]) / b.key_times[-1])
 
-    def canonical_time(self, p: Array | Sequence[float] | float, T: float | Array) -> float | Array:
+    def canonical_time(self, p: FloatArray | Sequence[float] | float, T: float | FloatArray) -> float | FloatArray:
         """t(T) under the key-times at p.
 
         Args:
@@ -588,7 +617,7 @@ class Verb:
         out = np.interp(T, k, self._tgrid)
         return float(out) if np.ndim(T) == 0 else out
 
-    def verb_time(self, p: Array | Sequence[float] | float, t: float | Array) -> float | Array:
+    def verb_time(self, p: FloatArray | Sequence[float] | float, t: float | FloatArray) -> float | FloatArray:
         """T(t) under the key-times at p.
 
         Args:
@@ -605,22 +634,23 @@ class Verb:
         out = np.interp(t, self._tgrid, k)
         return float(out) if np.ndim(t) == 0 else out
 
-    def _dt_dT(self, k: Array, t: Array) -> Array:
+    def _dt_dT(self, k: FloatArray, t: FloatArray) -> FloatArray:
         n = k.size - 1
         tc = np.mod(t, 1.0) if self.periodic else np.clip(t, 0.0, 1.0)
         m = np.minimum(np.floor(tc * n).astype(int), n - 1)
-        return 1.0 / (n * (k[m + 1] - k[m]))
+        rate: FloatArray = 1.0 / (n * (k[m + 1] - k[m]))
+        return rate
 
     @overload
-    def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: Literal[False] = False
-             ) -> tuple[Array, Array]: ...
+    def pose(self, p: FloatArray | Sequence[float] | float, t: float, *, with_position: Literal[False] = False
+             ) -> tuple[FloatArray, FloatArray]: ...
 
     @overload
-    def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: Literal[True]
-             ) -> tuple[Array, Array, Array]: ...
+    def pose(self, p: FloatArray | Sequence[float] | float, t: float, *, with_position: Literal[True]
+             ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
 
-    def pose(self, p: Array | Sequence[float] | float, t: float, *, with_position: bool = False
-             ) -> tuple[Array, Array] | tuple[Array, Array, Array]:
+    def pose(self, p: FloatArray | Sequence[float] | float, t: float, *, with_position: bool = False
+             ) -> tuple[FloatArray, FloatArray] | tuple[FloatArray, FloatArray, FloatArray]:
         """The fast path for playback: root velocity and joint rotations at one canonical time.
 
         The root velocity and the root rotation are relative to the trend frame (the start frame turned
@@ -679,7 +709,7 @@ class Verb:
             return vd[0, 3 * nj : 3 * nj + 3] + tt * b.disp, np.array([vx, vy, vz]), rot
         return np.array([vx, vy, vz]), rot
 
-    def sample(self, p: Array | Sequence[float] | float, t: float | Array) -> VerbFrame:
+    def sample(self, p: FloatArray | Sequence[float] | float, t: float | FloatArray) -> VerbFrame:
         """Everything at canonical time(s) t, in the start frame (t wraps for periodic verbs, without
         accumulating cycles; use ``at_time`` for that).
 
@@ -709,7 +739,7 @@ class Verb:
         rate = (dvals[..., nj3 + 3] + b.turn) * scale[..., 0]
         return VerbFrame(root_pos=pos, heading=heading, root_velocity=vel, heading_rate=rate, rotations=rot, t=tw)
 
-    def at_time(self, p: Array | Sequence[float] | float, T: float | Array) -> VerbFrame:
+    def at_time(self, p: FloatArray | Sequence[float] | float, T: float | FloatArray) -> VerbFrame:
         """Everything at verb time(s) T under p. Periodic verbs play on past T^d (and before 0), the root
         carrying the displacement and turn of each completed cycle; other verbs clamp T to [0, T^d].
 
@@ -773,7 +803,7 @@ class Verb:
         """Coefficients the interpolant stores."""
         return int(self.interpolant.coefficients.size)
 
-    def root_heading(self, p: Array | Sequence[float] | float, t: float) -> float:
+    def root_heading(self, p: FloatArray | Sequence[float] | float, t: float) -> float:
         """Root heading in the start frame at canonical time t (within one cycle).
 
         Args:

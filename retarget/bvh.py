@@ -19,12 +19,16 @@ from __future__ import annotations
 import io
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from capture.errors import TraceError
 from retarget.skeleton import Clip, Skeleton, guess_unity_names
+
+if TYPE_CHECKING:
+    from retarget._types import FloatArray
 
 __all__ = ["CMU_SCALE", "END_SITE_SUFFIX", "format_bvh", "parse_bvh", "read_bvh", "write_bvh"]
 
@@ -45,7 +49,7 @@ class _Joint:
         self.name = name
         self.parent = parent
         self.line = line
-        self.offset: np.ndarray | None = None
+        self.offset: FloatArray | None = None
         self.channels: list[str] = []
 
 
@@ -82,7 +86,7 @@ class _Parser:
             raise self.error(f"non-finite value {tok!r} in {what}", line)
         return v
 
-    def offset(self) -> np.ndarray:
+    def offset(self) -> FloatArray:
         return np.array([self.number("OFFSET") for _ in range(3)])
 
     def expect(self, word: str, after: str) -> int:
@@ -357,7 +361,7 @@ def format_bvh(clip: Clip, *, scale: float = 1.0, order: str = "ZXY") -> str:
     is_end = [j > 0 and not kids[j] and sk.names[j].endswith(END_SITE_SUFFIX) for j in range(n)]
     rot_ch = " ".join(f"{a}rotation" for a in order)
 
-    def vec(v: np.ndarray) -> str:
+    def vec(v: FloatArray) -> str:
         return " ".join(f"{x / scale:.8f}" for x in v)
 
     out = ["HIERARCHY"]

@@ -17,6 +17,7 @@ speeds scale with the leg length of the skeleton (1 for ``humanoid(1.75)``); dur
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
@@ -29,6 +30,9 @@ from capture.quat import (
     quat_rotate,
 )
 from retarget.skeleton import Clip, Skeleton, humanoid
+
+if TYPE_CHECKING:
+    from retarget._types import BoolArray, FloatArray
 
 __all__ = ["CLIP_NAMES", "DEFAULT_FPS", "GAITS", "Gait", "default_clips"]
 
@@ -146,7 +150,7 @@ class _Rig:
         self.stand_y = self.ankle_h - hip_y + _STAND_REACH * (self.l1 + self.l2)
 
 
-def _frame(y_axis: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
+def _frame(y_axis: FloatArray, x_hint: FloatArray) -> FloatArray:
     """Orthonormal frame(s) ``(..., 3, 3)`` with columns x, y, z: y along ``y_axis``, x from ``x_hint``."""
     y = y_axis / np.linalg.norm(y_axis, axis=-1, keepdims=True)
     x = x_hint - np.sum(x_hint * y, axis=-1, keepdims=True) * y
@@ -155,20 +159,20 @@ def _frame(y_axis: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=-1)
 
 
-def _rx(deg: np.ndarray | float) -> np.ndarray:
+def _rx(deg: FloatArray | float) -> FloatArray:
     return quat_from_axis_angle(_X, np.radians(deg))
 
 
-def _ry(deg: np.ndarray | float) -> np.ndarray:
+def _ry(deg: FloatArray | float) -> FloatArray:
     return quat_from_axis_angle(_Y, np.radians(deg))
 
 
-def _rz(deg: np.ndarray | float) -> np.ndarray:
+def _rz(deg: FloatArray | float) -> FloatArray:
     return quat_from_axis_angle(_Z, np.radians(deg))
 
 
-def _two_bone(hip: np.ndarray, ankle: np.ndarray, pole: np.ndarray, l1: float, l2: float
-              ) -> tuple[np.ndarray, np.ndarray]:
+def _two_bone(hip: FloatArray, ankle: FloatArray, pole: FloatArray, l1: float, l2: float
+              ) -> tuple[FloatArray, FloatArray]:
     """Knee positions and the hinge axis for hip/ankle targets ``(F, 3)`` (knee bent towards ``pole``)."""
     v = ankle - hip
     d = np.linalg.norm(v, axis=1, keepdims=True)
@@ -187,14 +191,14 @@ def _two_bone(hip: np.ndarray, ankle: np.ndarray, pole: np.ndarray, l1: float, l
 class _Pose:
     """Per-frame inputs of the pose solver (``F`` frames)."""
 
-    root: np.ndarray                         # (F, 3)
-    local: dict[str, np.ndarray]             # joint -> (F, 4) local rotation (Hips: world)
-    ankle: dict[str, np.ndarray]             # side -> (F, 3) ankle target
-    foot: dict[str, np.ndarray]              # side -> (F, 4) foot world rotation
-    head: np.ndarray | None = None           # (F, 4) head world rotation (keeps the gaze level)
+    root: FloatArray                         # (F, 3)
+    local: dict[str, FloatArray]             # joint -> (F, 4) local rotation (Hips: world)
+    ankle: dict[str, FloatArray]             # side -> (F, 3) ankle target
+    foot: dict[str, FloatArray]              # side -> (F, 4) foot world rotation
+    head: FloatArray | None = None           # (F, 4) head world rotation (keeps the gaze level)
 
 
-def _solve(rig: _Rig, pose: _Pose) -> np.ndarray:
+def _solve(rig: _Rig, pose: _Pose) -> FloatArray:
     """Local rotations ``(F, J, 4)`` realising the pose: given locals, IK legs, feet and head in the world."""
     sk = rig.sk
     f = len(pose.root)
@@ -203,7 +207,7 @@ def _solve(rig: _Rig, pose: _Pose) -> np.ndarray:
     rot = np.tile(ident[:, None, :], (1, n, 1))
     wq = np.empty((f, n, 4))
     wp = np.empty((f, n, 3))
-    world_goal: dict[int, np.ndarray] = {}
+    world_goal: dict[int, FloatArray] = {}
     if pose.head is not None:
         world_goal[sk.index("Head")] = pose.head
     legs = {rig.leg[s][0]: s for s in _SIDES}
@@ -234,8 +238,8 @@ def _solve(rig: _Rig, pose: _Pose) -> np.ndarray:
     return rot
 
 
-def _arms(f: int, swing_left: np.ndarray, forward: float, elbow_left: np.ndarray, elbow_right: np.ndarray,
-          down: float = 80.0, swing_right: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def _arms(f: int, swing_left: FloatArray, forward: float, elbow_left: FloatArray, elbow_right: FloatArray,
+          down: float = 80.0, swing_right: FloatArray | None = None) -> dict[str, FloatArray]:
     """Upper and lower arm locals: hanging ``down`` degrees from the T-pose, swung about X (+ = backwards)."""
     if swing_right is None:
         swing_right = -swing_left
@@ -248,7 +252,7 @@ def _arms(f: int, swing_left: np.ndarray, forward: float, elbow_left: np.ndarray
     return out
 
 
-def _touch_down_times(contacts: dict[str, np.ndarray], fps: float) -> tuple[float, ...]:
+def _touch_down_times(contacts: dict[str, BoolArray], fps: float) -> tuple[float, ...]:
     """0, the time of every frame where a contact starts, and the duration."""
     n_frames = len(next(iter(contacts.values())))
     events = {i for c in contacts.values() for i in np.flatnonzero(c[1:] & ~c[:-1]) + 1}
@@ -258,17 +262,19 @@ def _touch_down_times(contacts: dict[str, np.ndarray], fps: float) -> tuple[floa
 # ------------------------------------------------------------------------------------------- locomotion
 
 
-def _smoothstep(x: np.ndarray) -> np.ndarray:
+def _smoothstep(x: FloatArray) -> FloatArray:
     x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
+    y: FloatArray = x * x * (3.0 - 2.0 * x)
+    return y
 
 
-def _min_jerk(x: np.ndarray) -> np.ndarray:
+def _min_jerk(x: FloatArray) -> FloatArray:
     x = np.clip(x, 0.0, 1.0)
-    return x ** 3 * (10.0 - 15.0 * x + 6.0 * x * x)
+    y: FloatArray = x ** 3 * (10.0 - 15.0 * x + 6.0 * x * x)
+    return y
 
 
-def _foot_plan(rig: _Rig, g: Gait, n: int, side: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _foot_plan(rig: _Rig, g: Gait, n: int, side: str) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
     """Ankle position ``(F, 3)``, foot pitch (degrees, + = heel up), toes pitch and stance mask of one foot.
 
     In stance the ball of the foot stays on its foothold and the foot pivots about it; in swing the ankle
@@ -361,7 +367,7 @@ def _locomotion(rig: _Rig, name: str, g: Gait) -> Clip:
 # ------------------------------------------------------------------------------------------------ idles
 
 
-def _standing(rig: _Rig, t: np.ndarray, crouch: bool) -> _Pose:
+def _standing(rig: _Rig, t: FloatArray, crouch: bool) -> _Pose:
     """Idle (or crouched idle) pose at times ``t`` (2 s breathing and weight-shift cycle)."""
     k = rig.k
     f = len(t)
@@ -403,7 +409,7 @@ def _idle(rig: _Rig, name: str, crouch: bool) -> Clip:
 # -------------------------------------------------------------------------------------- keyframed clips
 
 
-def _pchip(times: list[float], values: list[float], t: np.ndarray) -> np.ndarray:
+def _pchip(times: list[float], values: list[float], t: FloatArray) -> FloatArray:
     return np.asarray(PchipInterpolator(times, values)(t), np.float64)
 
 
@@ -447,7 +453,6 @@ def _get_up(rig: _Rig) -> Clip:
     rot[-1] = _solve(rig, end)[0]
     root[-1] = end.root[0]
     pos = rig.sk.fk(root, rot)
-    assert isinstance(pos, np.ndarray)
     # planted: on the ground (ball or heel) and not dragged (ankle slower than 5 cm/s, pulling the feet in
     # is a slide, not a contact to lock)
     contacts = {}

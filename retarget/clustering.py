@@ -11,17 +11,20 @@ it leaves, and the count starts at D + 1 clusters, the fewest a linear fit over 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from retarget._types import FloatArray, IntArray
+
 __all__ = ["Clustering", "as_points", "basic_clustering", "improved_clustering"]
 
-Array = np.ndarray
 
-
-def as_points(points: Array | Sequence[float]) -> Array:
+def as_points(points: FloatArray | Sequence[float]) -> FloatArray:
     """Adverb points as a finite ``(n, D)`` array (``(n,)`` is read as n points of one adverb).
 
     Raises:
@@ -45,8 +48,8 @@ class Clustering:
         cost: sum over clusters of the distance from the centre to the farthest member.
     """
 
-    labels: Array
-    centres: Array
+    labels: IntArray
+    centres: FloatArray
     cost: float
 
     @property
@@ -59,7 +62,7 @@ class Clustering:
         return [np.flatnonzero(self.labels == k).tolist() for k in range(self.count)]
 
 
-def _finish(points: Array, labels: Array, k: int) -> Clustering:
+def _finish(points: FloatArray, labels: IntArray, k: int) -> Clustering:
     centres = np.stack([points[labels == c].mean(axis=0) for c in range(k)])
     radii = np.linalg.norm(points - centres[labels], axis=1)
     cost = float(sum(radii[labels == c].max() for c in range(k)))
@@ -67,7 +70,7 @@ def _finish(points: Array, labels: Array, k: int) -> Clustering:
 
 
 def basic_clustering(
-    points: Array | Sequence[float],
+    points: FloatArray | Sequence[float],
     n: int,
     *,
     rng: np.random.Generator,
@@ -132,7 +135,7 @@ def basic_clustering(
 
 
 def improved_clustering(
-    points: Array | Sequence[float],
+    points: FloatArray | Sequence[float],
     *,
     max_cost: float,
     max_clusters: int,

@@ -14,19 +14,22 @@ standing for its members' means) is in ``docs/design/verbs-and-adverbs.md``.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import linalg
 
 from retarget.clustering import Clustering, as_points, basic_clustering, improved_clustering
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from retarget._types import FloatArray
+
 __all__ = ["RBF", "MultiResolutionRBF", "bspline_kernel"]
 
-Array = np.ndarray
 
-
-def bspline_kernel(x: Array | float) -> Array | float:
+def bspline_kernel(x: FloatArray | float) -> FloatArray | float:
     """The cubic B-spline radial function, support radius 2.
 
     B(x) = (4 - 6x^2 + 3|x|^3) / 6 for |x| < 1, (2 - |x|)^3 / 6 for |x| < 2, 0 otherwise; B(0) = 2/3 and
@@ -43,7 +46,7 @@ def bspline_kernel(x: Array | float) -> Array | float:
     return float(out) if np.ndim(x) == 0 else out
 
 
-def _as_query(p: Array | Sequence[float] | float, dim: int) -> tuple[Array, bool]:
+def _as_query(p: FloatArray | Sequence[float] | float, dim: int) -> tuple[FloatArray, bool]:
     """Queries as (Q, D) and whether a single point was given."""
     a = np.asarray(p, dtype=float)
     if a.ndim == 0:
@@ -61,16 +64,16 @@ def _as_query(p: Array | Sequence[float] | float, dim: int) -> tuple[Array, bool
     raise ValueError(f"adverb points must be (Q, {dim}), got {a.shape}")
 
 
-def _nearest_other(points: Array) -> Array:
+def _nearest_other(points: FloatArray) -> FloatArray:
     d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1)
     np.fill_diagonal(d, np.inf)
-    alpha = d.min(axis=1)
+    alpha: FloatArray = d.min(axis=1)
     if np.any(alpha <= 0.0):
         raise ValueError("two interpolation points coincide; examples must be well separated")
     return alpha
 
 
-def _kernel_matrix(points: Array, alpha: Array) -> Array:
+def _kernel_matrix(points: FloatArray, alpha: FloatArray) -> FloatArray:
     """D[i2, i1] = B(|p_i2 - p_i1| / alpha_i1): row = example, column = basis function."""
     d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1)
     return np.asarray(bspline_kernel(d / alpha[None, :]))
@@ -81,14 +84,14 @@ class _Interpolant(ABC):
     ``MultiResolutionRBF``) provide the basis."""
 
     dim: int
-    coefficients: Array
+    coefficients: FloatArray
     _scalar: bool
 
     @abstractmethod
-    def basis(self, p: Array | Sequence[float] | float) -> Array:
+    def basis(self, p: FloatArray | Sequence[float] | float) -> FloatArray:
         """The basis row(s) at p."""
 
-    def __call__(self, p: Array | Sequence[float] | float) -> Array | float:
+    def __call__(self, p: FloatArray | Sequence[float] | float) -> FloatArray | float:
         """Evaluate at one point (returns (M,) or a float for scalar data) or at (Q, D) points.
 
         Args:
@@ -108,11 +111,11 @@ class _Interpolant(ABC):
         return out[0] if single else out
 
     @abstractmethod
-    def _basis_q(self, q: Array) -> Array:
+    def _basis_q(self, q: FloatArray) -> FloatArray:
         """The basis rows at the (Q, D) points q."""
 
 
-def _linear_fit(points: Array, values: Array) -> Array:
+def _linear_fit(points: FloatArray, values: FloatArray) -> FloatArray:
     """Least squares [1, p] a = v by SVD (gelsd)."""
     a_mat = np.hstack([np.ones((points.shape[0], 1)), points])
     coef, *_ = linalg.lstsq(a_mat, values, lapack_driver="gelsd")
@@ -144,7 +147,7 @@ class RBF(_Interpolant):
         ValueError: mismatched shapes, fewer than D + 1 examples, or coincident points.
     """
 
-    def __init__(self, points: Array | Sequence[float], values: Array | Sequence[float]) -> None:
+    def __init__(self, points: FloatArray | Sequence[float], values: FloatArray | Sequence[float]) -> None:
         pts = as_points(points)
         v = np.asarray(values, dtype=float)
         self._scalar = v.ndim == 1
@@ -163,16 +166,16 @@ class RBF(_Interpolant):
         self.radial = np.asarray(linalg.solve(self.kernel_matrix, self.residuals))
         self.coefficients = np.vstack([self.linear, self.radial])
 
-    def _basis_q(self, q: Array) -> Array:
+    def _basis_q(self, q: FloatArray) -> FloatArray:
         dist = np.linalg.norm(q[:, None, :] - self.points[None, :, :], axis=-1)
         return np.hstack([np.ones((q.shape[0], 1)), q, bspline_kernel(dist / self.alphas)])
 
-    def basis_one(self, p: Array) -> Array:
+    def basis_one(self, p: FloatArray) -> FloatArray:
         """``basis`` for one validated (D,) point, without the argument checks (the fast path)."""
         x = np.sqrt(((self.points - p) ** 2).sum(axis=1)) / self.alphas
         return np.concatenate(([1.0], p, (np.maximum(2.0 - x, 0.0) ** 3 - 4.0 * np.maximum(1.0 - x, 0.0) ** 3) / 6.0))
 
-    def basis(self, p: Array | Sequence[float] | float) -> Array:
+    def basis(self, p: FloatArray | Sequence[float] | float) -> FloatArray:
         """Basis row(s) [1, p, B(|p - p_i| / alpha_i)]: f(p) = basis(p) @ coefficients.
 
         Args:
@@ -221,8 +224,8 @@ class MultiResolutionRBF(_Interpolant):
 
     def __init__(
         self,
-        points: Array | Sequence[float],
-        values: Array | Sequence[float],
+        points: FloatArray | Sequence[float],
+        values: FloatArray | Sequence[float],
         *,
         max_cost: float | None = None,
         max_clusters: int | None = None,
@@ -256,9 +259,9 @@ class MultiResolutionRBF(_Interpolant):
         self.levels = levels
         means = [np.stack([v[c.labels == j].mean(axis=0) for j in range(c.count)]) for c in levels]
         self.linear = _linear_fit(levels[0].centres, means[0])
-        self.level_points: list[Array] = []
-        self.level_alphas: list[Array] = []
-        self.level_radial: list[Array] = []
+        self.level_points: list[FloatArray] = []
+        self.level_alphas: list[FloatArray] = []
+        self.level_radial: list[FloatArray] = []
         for c, target in zip(levels, means, strict=True):
             centres = c.centres
             so_far = self._evaluate_partial(centres)
@@ -269,25 +272,26 @@ class MultiResolutionRBF(_Interpolant):
             self.level_radial.append(r)
         self.coefficients = np.vstack([self.linear, *self.level_radial])
 
-    def _evaluate_partial(self, q: Array) -> Array:
+    def _evaluate_partial(self, q: FloatArray) -> FloatArray:
         out = np.hstack([np.ones((q.shape[0], 1)), q]) @ self.linear
         for pts, alpha, r in zip(self.level_points, self.level_alphas, self.level_radial, strict=True):
             dist = np.linalg.norm(q[:, None, :] - pts[None, :, :], axis=-1)
             out = out + np.asarray(bspline_kernel(dist / alpha)) @ r
         return out
 
-    def basis_one(self, p: Array) -> Array:
+    def basis_one(self, p: FloatArray) -> FloatArray:
         """``basis`` for one validated (D,) point, without the argument checks (the fast path)."""
-        return self._basis_q(p[None, :])[0]
+        row: FloatArray = self._basis_q(p[None, :])[0]
+        return row
 
-    def _basis_q(self, q: Array) -> Array:
+    def _basis_q(self, q: FloatArray) -> FloatArray:
         parts = [np.ones((q.shape[0], 1)), q]
         for pts, alpha in zip(self.level_points, self.level_alphas, strict=True):
             dist = np.linalg.norm(q[:, None, :] - pts[None, :, :], axis=-1)
             parts.append(np.asarray(bspline_kernel(dist / alpha)))
         return np.hstack(parts)
 
-    def basis(self, p: Array | Sequence[float] | float) -> Array:
+    def basis(self, p: FloatArray | Sequence[float] | float) -> FloatArray:
         """Basis row(s): f(p) = basis(p) @ coefficients.
 
         Args:

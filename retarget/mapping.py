@@ -26,10 +26,15 @@ This module owns the spec's section 3.3 (Ciccone 2019, L1156-1182):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from retarget._types import FloatArray
 
 __all__ = [
     "EXACT_HIT",
@@ -81,7 +86,7 @@ class AxisMap:
         p = (u - self.a) / (self.b - self.a)
         return 0.0 if p <= 0.0 else (1.0 if p >= 1.0 else float(p))
 
-    def map_array(self, u: object) -> np.ndarray:
+    def map_array(self, u: object) -> FloatArray:
         """Map an array of inputs to [0, 1] element-wise.
 
         Raises:
@@ -93,7 +98,7 @@ class AxisMap:
         return np.clip((arr - self.a) / (self.b - self.a), 0.0, 1.0)
 
 
-def idw(u: object, probes_u: object, probes_p: object, q: float = 7.0) -> np.ndarray:
+def idw(u: object, probes_u: object, probes_p: object, q: float = 7.0) -> FloatArray:
     """Inverse distance weighting of probe parameters (eq. 6.1-6.2), computed in log space.
 
     Args:
@@ -126,7 +131,7 @@ def idw(u: object, probes_u: object, probes_p: object, q: float = 7.0) -> np.nda
     return out[0] if single else out
 
 
-def _idw_one(u: np.ndarray, pu: np.ndarray, pp: np.ndarray, q: float) -> np.ndarray:
+def _idw_one(u: FloatArray, pu: FloatArray, pp: FloatArray, q: float) -> FloatArray:
     """IDW of one ``(N,)`` query without argument checks (the per-frame path; same result as ``_idw_rows``)."""
     diff = pu - u
     d2 = np.einsum("ij,ij->i", diff, diff)
@@ -139,7 +144,7 @@ def _idw_one(u: np.ndarray, pu: np.ndarray, pp: np.ndarray, q: float) -> np.ndar
     return np.asarray((w @ pp) / w.sum(), dtype=float)
 
 
-def _idw_rows(queries: np.ndarray, pu: np.ndarray, pp: np.ndarray, q: float) -> np.ndarray:
+def _idw_rows(queries: FloatArray, pu: FloatArray, pp: FloatArray, q: float) -> FloatArray:
     """IDW of ``(M, N)`` queries without argument checks (``w = d^-q`` as ``exp(-q/2 ln d^2)``)."""
     d2 = np.zeros((queries.shape[0], pu.shape[0]))
     for axis in range(pu.shape[1]):
@@ -251,7 +256,7 @@ class ProbeTable:
         h = min(1.0, max(0.0, height))
         return float(np.interp(h, self.border[:, 1], self.border[:, 0])) * self.v_max
 
-    def lookup(self, speed: object, height: object) -> np.ndarray:
+    def lookup(self, speed: object, height: object) -> FloatArray:
         """Plain IDW lookup without projection (vectorised).
 
         Args:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -42,6 +42,10 @@ from retarget.skeleton import Clip, Skeleton, humanoid
 from retarget.states import PuppetState
 from retarget.stick import MotionStick, pose_matrix
 from retarget.timeline import sigmoid_blend, yaw_quat
+
+if TYPE_CHECKING:
+    from retarget._types import FloatArray
+    from retarget.mapping import BlendQuery
 
 #: Adverb points of the locomotion clips in blend space (p_vel, p_height), spec §3.3 / Fig. 6.3.
 LOCOMOTION_POINTS: dict[str, tuple[float, float]] = {
@@ -72,8 +76,8 @@ class PuppetFrame:
 
     t: float
     state: PuppetState
-    root_pos: np.ndarray          # (3,) world position of the root (Hips)
-    rotations: np.ndarray         # (J, 4) local rotations, joint 0 in the world
+    root_pos: FloatArray          # (3,) world position of the root (Hips)
+    rotations: FloatArray         # (J, 4) local rotations, joint 0 in the world
     transitions: tuple[Transition, ...]
     blend: tuple[float, float]    # (p_vel, p_height) used this frame
     speedup: float
@@ -160,16 +164,16 @@ class PuppetRetargeter:
         self.heading = 0.0
         self.phase = 0.0
         self.velocity = np.zeros(3)
-        self._last_target: np.ndarray | None = None
+        self._last_target: FloatArray | None = None
         self._last_rot = self.verb.pose((0.0, 1.0), 0.0)[1]
         self._last_root = self.position.copy()
-        self._fade_from: tuple[np.ndarray, np.ndarray] | None = None
+        self._fade_from: tuple[FloatArray, FloatArray] | None = None
         self._fade_at = 0.0
         self._state_at = 0.0
         self._jump_offset = np.zeros(3)
         self._get_up_base = np.zeros(3)
         self._hold_offset = np.zeros(3)
-        self._prev_joints: np.ndarray | None = None
+        self._prev_joints: FloatArray | None = None
         self._touch = False
         self.machine = PuppetStateMachine(self.machine.config)
         self.stick.release()
@@ -248,7 +252,7 @@ class PuppetRetargeter:
         return PuppetFrame(t=t, state=new_state, root_pos=root, rotations=rot, transitions=transitions,
                            blend=p_used, speedup=speedup)
 
-    def _on_transitions(self, transitions: tuple[Transition, ...], t: float, prev_end: np.ndarray) -> None:
+    def _on_transitions(self, transitions: tuple[Transition, ...], t: float, prev_end: FloatArray) -> None:
         last = transitions[-1].to_state
         self._fade_from = (self._last_root.copy(), self._last_rot.copy())
         self._fade_at = t
@@ -266,8 +270,8 @@ class PuppetRetargeter:
             hips = self.ragdoll.pos[0]
             self._get_up_base = np.array([hips[0], 0.0, hips[2]])
 
-    def _pose(self, state: PuppetState, t: float, dt: float, end: np.ndarray, heading: float,
-              blend: Any) -> tuple[np.ndarray, np.ndarray, tuple[float, float], float]:
+    def _pose(self, state: PuppetState, t: float, dt: float, end: FloatArray, heading: float,
+              blend: BlendQuery) -> tuple[FloatArray, FloatArray, tuple[float, float], float]:
         yaw = yaw_quat(heading)
         if state is PuppetState.LOCOMOTION:
             p = (float(blend.p_vel), float(blend.p_height))
@@ -319,7 +323,7 @@ class PuppetRetargeter:
         rot[0] = quat_mul(yaw_quat(self.heading), rot[0])
         return np.array([self.position[0], float(pos[1]), self.position[2]]), rot, p, 1.0
 
-    def _jump_clip_time(self, t: float, end: np.ndarray, clip: Clip) -> float:
+    def _jump_clip_time(self, t: float, end: FloatArray, clip: Clip) -> float:
         """Where the mid-jump clip is: the fitted parabola's apex drives it (spec 3.4), the clip's middle
         key-time (the tuck) at the apex, its end at the height the jump started from; by time since takeoff
         while the fit has no apex yet."""
@@ -347,7 +351,7 @@ class PuppetRetargeter:
         err = (goal - self.heading + math.pi) % (2 * math.pi) - math.pi
         return self.heading + err * (1.0 - math.exp(-dt / self.config.turn_s))
 
-    def _crossfade(self, t: float, root: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _crossfade(self, t: float, root: FloatArray, rot: FloatArray) -> tuple[FloatArray, FloatArray]:
         if self._fade_from is None:
             return root, rot
         u = (t - self._fade_at) / self.config.crossfade
@@ -363,7 +367,7 @@ class PuppetRetargeter:
         return out, quat_slerp(q0, rot, a)
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+def _rotate(q: FloatArray, v: FloatArray) -> FloatArray:
     """``v`` rotated by the unit quaternion ``q`` (w, x, y, z)."""
     w, x, y, z = (float(c) for c in q)
     vx, vy, vz = (float(c) for c in v)

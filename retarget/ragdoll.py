@@ -16,11 +16,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from capture.quat import cross, quat_from_matrix
+
+if TYPE_CHECKING:
+    from retarget._types import FloatArray, IntArray
 
 
 @dataclass
@@ -51,7 +55,7 @@ class Ragdoll:
         ValueError: malformed skeleton arrays.
     """
 
-    def __init__(self, parents: np.ndarray, offsets: np.ndarray, settings: RagdollSettings | None = None,
+    def __init__(self, parents: IntArray, offsets: FloatArray, settings: RagdollSettings | None = None,
                  ground_y: float = 0.0) -> None:
         self.parents = np.asarray(parents, np.int64)
         self.offsets = np.asarray(offsets, np.float64)
@@ -120,7 +124,7 @@ class Ragdoll:
         self._multi_rest = (_frames(self.offsets[self._multi_a], self.offsets[self._multi_b])
                             if multi else np.zeros((0, 3, 3)))
 
-    def start(self, positions: np.ndarray, velocities: np.ndarray | None = None, dt: float = 1 / 60) -> None:
+    def start(self, positions: FloatArray, velocities: FloatArray | None = None, dt: float = 1 / 60) -> None:
         """Take over from an animated pose: world joint positions ``(J, 3)`` and their velocities."""
         p = np.asarray(positions, np.float64)
         if p.shape != self.pos.shape or not np.all(np.isfinite(p)):
@@ -130,7 +134,7 @@ class Ragdoll:
         self.prev = p - v * dt
         self._still = 0.0
 
-    def step(self, dt: float, hold: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+    def step(self, dt: float, hold: tuple[int, FloatArray] | None = None) -> FloatArray:
         """Advance ``dt`` seconds; ``hold`` = (joint, target position) while the player holds it.
 
         Returns:
@@ -165,7 +169,7 @@ class Ragdoll:
         self._still = self._still + dt if still else 0.0
         return self.pos
 
-    def _constraints(self, pos: np.ndarray) -> None:
+    def _constraints(self, pos: FloatArray) -> None:
         # bones (rigid: any error corrected) and joint limits (only a joint nearer its grandparent than
         # the limit allows is pushed out), every correction from the same positions, summed per joint
         d = self._diff @ pos
@@ -181,7 +185,7 @@ class Ragdoll:
         return (self._still >= self.s.rest_time
                 and float(self.pos[:, 1].min()) <= self.ground_y + 2 * self.s.radius)
 
-    def rotations(self) -> tuple[np.ndarray, np.ndarray]:
+    def rotations(self) -> tuple[FloatArray, FloatArray]:
         """The pose as the skeleton's root position ``(3,)`` and local rotations ``(J, 4)`` (w, x, y, z)."""
         world = self._identity.copy()                   # world rotation matrices (J, 3, 3)
         # joints with one child: the smallest rotation taking the rest bone onto the current one
@@ -200,7 +204,7 @@ class Ragdoll:
         return self.pos[0].copy(), local
 
 
-def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _frames(a: FloatArray, b: FloatArray) -> FloatArray:
     e1 = a / np.linalg.norm(a, axis=1, keepdims=True)
     e3 = cross(e1, b)
     e3 = e3 / np.maximum(np.linalg.norm(e3, axis=1, keepdims=True), 1e-12)
@@ -208,14 +212,15 @@ def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, e3], axis=2)          # columns
 
 
-def _triad(rest: np.ndarray, ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
+def _triad(rest: FloatArray, ca: FloatArray, cb: FloatArray) -> FloatArray:
     """Rotation matrices of the rotations taking the rest triads ``rest`` (``_frames`` of the rest
     directions) to the current directions (ca, cb): the first onto ``ca`` exactly, the plane of the two as
     close as possible."""
-    return np.einsum("nij,nkj->nik", _frames(ca, cb), rest)
+    rotations: FloatArray = np.einsum("nij,nkj->nik", _frames(ca, cb), rest)
+    return rotations
 
 
-def _swing_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _swing_matrices(a: FloatArray, b: FloatArray) -> FloatArray:
     """Rotation matrices ``(n, 3, 3)`` of the smallest rotations taking the unit directions ``a`` onto ``b``:
     ``c I + [v]x + v v^T / (1 + c)`` with ``v = a x b``, ``c = a . b`` (a half turn for opposite ones)."""
     b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
@@ -238,7 +243,7 @@ def _swing_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return m
 
 
-def _swing(a: np.ndarray, b: np.ndarray) -> Rotation:
+def _swing(a: FloatArray, b: FloatArray) -> Rotation:
     """The smallest rotation taking direction ``a`` to direction ``b``."""
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)

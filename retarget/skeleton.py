@@ -14,7 +14,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Literal, overload
+from typing import TYPE_CHECKING, Literal, overload
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from capture.quat import (
     quat_to_matrix,
     quat_to_matrix_components,
 )
+
+if TYPE_CHECKING:
+    from retarget._types import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "HUMANOID_JOINTS",
@@ -126,9 +129,13 @@ class Skeleton:
     """
 
     names: tuple[str, ...]
-    parents: np.ndarray
-    offsets: np.ndarray
+    parents: IntArray
+    offsets: FloatArray
     unity_names: Mapping[str, str] = field(default_factory=dict)
+    # derived in __post_init__: joint name -> index, and the two forward-kinematics schedules
+    _index: dict[str, int] = field(init=False, repr=False)
+    _jumps: tuple[IntArray, ...] = field(init=False, repr=False)
+    _levels: tuple[tuple[IntArray, IntArray, FloatArray], ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         names = tuple(str(n) for n in self.names)
@@ -203,7 +210,7 @@ class Skeleton:
             ValueError: if there is no joint of that name.
         """
         try:
-            return int(self._index[name])  # type: ignore[attr-defined]
+            return self._index[name]
         except KeyError:
             raise ValueError(f"no joint named {name!r}") from None
 
@@ -212,17 +219,16 @@ class Skeleton:
         j = self.index(joint) if isinstance(joint, str) else int(joint)
         return tuple(int(i) for i in np.flatnonzero(self.parents == j))
 
-    def bone_lengths(self) -> np.ndarray:
+    def bone_lengths(self) -> FloatArray:
         """``(J,)`` length of the bone ending at each joint (the root's offset length for the root)."""
-        return np.linalg.norm(self.offsets, axis=1)
+        lengths: FloatArray = np.linalg.norm(self.offsets, axis=1)
+        return lengths
 
-    def rest_positions(self) -> np.ndarray:
+    def rest_positions(self) -> FloatArray:
         """``(J, 3)`` world positions with every rotation the identity and the root position at 0."""
-        out = self.fk(np.zeros(3), np.tile([1.0, 0.0, 0.0, 0.0], (len(self.names), 1)))
-        assert isinstance(out, np.ndarray)
-        return out
+        return self.fk(np.zeros(3), np.tile([1.0, 0.0, 0.0, 0.0], (len(self.names), 1)))
 
-    def with_bone_lengths(self, scale: Mapping[str, float] | np.ndarray) -> Skeleton:
+    def with_bone_lengths(self, scale: Mapping[str, float] | FloatArray) -> Skeleton:
         """A copy with stretched (or shrunk) bones, e.g. a longer neck for a bigger head.
 
         Args:
@@ -249,15 +255,15 @@ class Skeleton:
         return Skeleton(self.names, self.parents, self.offsets * f[:, None], dict(self.unity_names))
 
     @overload
-    def fk(self, root_pos: np.ndarray, rotations: np.ndarray, *, world_rotations: Literal[False] = False
-           ) -> np.ndarray: ...
+    def fk(self, root_pos: FloatArray, rotations: FloatArray, *, world_rotations: Literal[False] = False
+           ) -> FloatArray: ...
 
     @overload
-    def fk(self, root_pos: np.ndarray, rotations: np.ndarray, *, world_rotations: Literal[True]
-           ) -> tuple[np.ndarray, np.ndarray]: ...
+    def fk(self, root_pos: FloatArray, rotations: FloatArray, *, world_rotations: Literal[True]
+           ) -> tuple[FloatArray, FloatArray]: ...
 
-    def fk(self, root_pos: np.ndarray, rotations: np.ndarray, *, world_rotations: bool = False
-           ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    def fk(self, root_pos: FloatArray, rotations: FloatArray, *, world_rotations: bool = False
+           ) -> FloatArray | tuple[FloatArray, FloatArray]:
         """Forward kinematics, vectorised over frames.
 
         Args:
@@ -297,7 +303,7 @@ class Skeleton:
             return pos, quat_from_matrix(world)
         return pos
 
-    def _fk_jumps(self, root_pos: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _fk_jumps(self, root_pos: FloatArray, rotations: FloatArray) -> tuple[FloatArray, FloatArray]:
         # few frames: 4x4 transforms composed by pointer jumping (a few batched matrix products)
         n = len(self.names)
         a = np.zeros((rotations.shape[0], n + 1, 4, 4))
@@ -306,11 +312,11 @@ class Skeleton:
         a[:, 0, :3, 3] += root_pos
         a[:, :, 3, 3] = 1.0
         a[:, n, :3, :3] = np.eye(3)
-        for ptr in self._jumps:  # type: ignore[attr-defined]
+        for ptr in self._jumps:
             a = np.matmul(a.take(ptr, axis=1), a)
         return a[:, :n, :3, 3].copy(), a[:, :n, :3, :3]
 
-    def _fk_levels(self, root_pos: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _fk_levels(self, root_pos: FloatArray, rotations: FloatArray) -> tuple[FloatArray, FloatArray]:
         # many frames: component-first arrays (3, 3, J, F), one depth level at a time
         n = len(self.names)
         local = quat_to_matrix_components(np.ascontiguousarray(rotations.transpose(2, 1, 0)))
@@ -318,7 +324,7 @@ class Skeleton:
         pos = np.empty((3, n, rotations.shape[0]))
         world[:, :, 0] = local[:, :, 0]
         pos[:, 0] = (root_pos + self.offsets[0]).T
-        for js, ps, off in self._levels:  # type: ignore[attr-defined]
+        for js, ps, off in self._levels:
             wp = world[:, :, ps]
             world[:, :, js] = (wp[:, :, None] * local[:, :, js][None]).sum(axis=1)
             pos[:, js] = pos[:, ps] + (wp * off).sum(axis=1)
@@ -351,9 +357,9 @@ class Clip:
     name: str
     skeleton: Skeleton
     fps: float
-    root_pos: np.ndarray
-    rotations: np.ndarray
-    contacts: Mapping[str, np.ndarray] = field(default_factory=dict)
+    root_pos: FloatArray
+    rotations: FloatArray
+    contacts: Mapping[str, BoolArray] = field(default_factory=dict)
     key_times: tuple[float, ...] = ()
     loop: bool = False
 
@@ -416,17 +422,15 @@ class Clip:
         return (self.n_frames - 1) / self.fps
 
     @property
-    def times(self) -> np.ndarray:
+    def times(self) -> FloatArray:
         """``(F,)`` frame times in seconds."""
         return np.arange(self.n_frames) / self.fps
 
-    def positions(self) -> np.ndarray:
+    def positions(self) -> FloatArray:
         """``(F, J, 3)`` world joint positions of every frame."""
-        out = self.skeleton.fk(self.root_pos, self.rotations)
-        assert isinstance(out, np.ndarray)
-        return out
+        return self.skeleton.fk(self.root_pos, self.rotations)
 
-    def sample(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def sample(self, t: float | FloatArray) -> tuple[FloatArray, FloatArray]:
         """The pose at time(s) ``t``, interpolated (linear root, slerp rotations).
 
         A looping clip wraps ``t`` and carries the root on by one cycle displacement per wrap, so playing
@@ -542,7 +546,7 @@ def humanoid(height: float = _REF_HEIGHT) -> Skeleton:
 # ------------------------------------------------------------------------------------------ Bezier spine
 
 
-def bezier_control(p_pelvis: np.ndarray, p_chest: np.ndarray, p_up: np.ndarray, b: float = 0.3) -> np.ndarray:
+def bezier_control(p_pelvis: FloatArray, p_chest: FloatArray, p_up: FloatArray, b: float = 0.3) -> FloatArray:
     """The middle control point of the spine curve (spec eq. 6.4).
 
     ``p1 = (p_pelvis + (1 - b) p_chest + b p_up) / 2``; with the chest upright (``p_chest == p_up``) it is
@@ -569,8 +573,8 @@ def bezier_control(p_pelvis: np.ndarray, p_chest: np.ndarray, p_up: np.ndarray, 
     return (p0 + (1.0 - b) * p2 + b * pu) / 2.0
 
 
-def bezier_spine(p_pelvis: np.ndarray, p_chest: np.ndarray, p_up: np.ndarray, s: np.ndarray | float, *,
-                 b: float = 0.3) -> np.ndarray:
+def bezier_spine(p_pelvis: FloatArray, p_chest: FloatArray, p_up: FloatArray, s: FloatArray | float, *,
+                 b: float = 0.3) -> FloatArray:
     """Points on the quadratic Bezier spine from pelvis to chest (variable bone lengths, spec 3.5).
 
     ``B(s) = (1-s)^2 P0 + 2 s (1-s) P1 + s^2 P2`` with ``P1 = bezier_control(...)``.

@@ -17,11 +17,16 @@ scalar-first ``(w, x, y, z)``.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from retarget._types import FloatArray
 
 __all__ = [
     "MotionStick",
@@ -38,7 +43,7 @@ _RIGID_TOL = 1e-6
 
 
 
-def _as_transform(x: object, name: str) -> np.ndarray:
+def _as_transform(x: object, name: str) -> FloatArray:
     """Check that ``x`` is a 4x4 rigid transform and return it as a float array.
 
     Raises:
@@ -63,7 +68,7 @@ def _as_transform(x: object, name: str) -> np.ndarray:
     return m
 
 
-def make_transform(rotation: object, translation: object) -> np.ndarray:
+def make_transform(rotation: object, translation: object) -> FloatArray:
     """Build a 4x4 transform from a 3x3 rotation matrix and a translation.
 
     Args:
@@ -86,7 +91,7 @@ def make_transform(rotation: object, translation: object) -> np.ndarray:
     return _as_transform(m, "transform")
 
 
-def pose_matrix(position: object, quaternion: object) -> np.ndarray:
+def pose_matrix(position: object, quaternion: object) -> FloatArray:
     """Build a 4x4 transform from a position and a scalar-first unit quaternion ``(w, x, y, z)``.
 
     Args:
@@ -116,7 +121,7 @@ def pose_matrix(position: object, quaternion: object) -> np.ndarray:
                      [0.0, 0.0, 0.0, 1.0]])
 
 
-def invert_transform(x: object) -> np.ndarray:
+def invert_transform(x: object) -> FloatArray:
     """Invert a rigid 4x4 transform (``R^T``, ``-R^T t``).
 
     Raises:
@@ -129,7 +134,7 @@ def invert_transform(x: object) -> np.ndarray:
     return out
 
 
-def yaw_matrix(heading: float) -> np.ndarray:
+def yaw_matrix(heading: float) -> FloatArray:
     """The 3x3 rotation by ``heading`` radians about +Y (sends +Z to ``(sin h, 0, cos h)``)."""
     c, s = math.cos(heading), math.sin(heading)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
@@ -207,8 +212,8 @@ class StickTarget:
         shortened: True when a plane shortened the stick this frame.
     """
 
-    pose: np.ndarray
-    full_pose: np.ndarray
+    pose: FloatArray
+    full_pose: FloatArray
     length: float
     rest_length: float
     heading: float
@@ -238,7 +243,7 @@ class MotionStick:
             raise ValueError(f"clearance must be finite and >= 0, got {clearance!r}")
         self.planes: tuple[Plane, ...] = (Plane.ground(ground_height), *planes)
         self.clearance = float(clearance)
-        self._rel: np.ndarray | None = None
+        self._rel: FloatArray | None = None
         self._rest_length = 0.0
 
     @property
@@ -247,7 +252,7 @@ class MotionStick:
         return self._rel is not None
 
     @property
-    def relative(self) -> np.ndarray:
+    def relative(self) -> FloatArray:
         """``X_rel = X_phone^-1 X_obj`` fixed at grab time (a copy).
 
         Raises:

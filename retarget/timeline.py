@@ -20,11 +20,16 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from capture.quat import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
+    from retarget._types import BoolArray, FloatArray
 
 __all__ = [
     "Affine",
@@ -52,14 +57,12 @@ __all__ = [
     "yaw_quat",
 ]
 
-Array = np.ndarray
-
 
 # --------------------------------------------------------------------------------------------------
 # Key-times and canonical time
 
 
-def check_key_times(key_times: Sequence[float] | Array) -> Array:
+def check_key_times(key_times: Sequence[float] | FloatArray) -> FloatArray:
     """Validate key-times and return them as a float array.
 
     Args:
@@ -83,7 +86,7 @@ def check_key_times(key_times: Sequence[float] | Array) -> Array:
     return k
 
 
-def canonical_time(T: float | Array, key_times: Sequence[float] | Array) -> float | Array:
+def canonical_time(T: float | FloatArray, key_times: Sequence[float] | FloatArray) -> float | FloatArray:
     """Canonical time t(T) (eq 3.1): the piecewise-linear map sending K_m to (m-1)/(N-1).
 
     T outside [0, T^d] is clamped. With only the key-times (0, T^d) this is t = T / T^d.
@@ -103,7 +106,7 @@ def canonical_time(T: float | Array, key_times: Sequence[float] | Array) -> floa
     return float(out) if np.ndim(T) == 0 else out
 
 
-def verb_time(t: float | Array, key_times: Sequence[float] | Array) -> float | Array:
+def verb_time(t: float | FloatArray, key_times: Sequence[float] | FloatArray) -> float | FloatArray:
     """Verb time T(t) (eq 3.2), the inverse of ``canonical_time``; t outside [0, 1] is clamped.
 
     Args:
@@ -125,7 +128,7 @@ def verb_time(t: float | Array, key_times: Sequence[float] | Array) -> float | A
 # Blend functions and time-warps (non-decreasing maps [0, 1] -> [0, 1])
 
 
-def sigmoid_blend(t: float | Array) -> float | Array:
+def sigmoid_blend(t: float | FloatArray) -> float | FloatArray:
     """The sigmoid blend alpha(t) = (cos(-pi + pi t) + 1) / 2, t clamped to [0, 1].
 
     It equals the sine ease 1/2 + 1/2 sin(pi (t - 1/2)), has alpha(1/2) = 1/2 and zero slope at both
@@ -142,7 +145,7 @@ def sigmoid_blend(t: float | Array) -> float | Array:
     return float(out) if np.ndim(t) == 0 else out
 
 
-def sigmoid_blend_slope(t: float | Array) -> float | Array:
+def sigmoid_blend_slope(t: float | FloatArray) -> float | FloatArray:
     """d alpha / dt of ``sigmoid_blend``: (pi / 2) sin(pi t) inside [0, 1], 0 outside.
 
     Args:
@@ -156,7 +159,7 @@ def sigmoid_blend_slope(t: float | Array) -> float | Array:
     return float(out) if np.ndim(t) == 0 else out
 
 
-def linear_blend(t: float | Array) -> float | Array:
+def linear_blend(t: float | FloatArray) -> float | FloatArray:
     """The linear blend alpha(t) = t, clamped to [0, 1].
 
     Args:
@@ -169,7 +172,7 @@ def linear_blend(t: float | Array) -> float | Array:
     return float(out) if np.ndim(t) == 0 else out
 
 
-def sine_warp(t: float | Array) -> float | Array:
+def sine_warp(t: float | FloatArray) -> float | FloatArray:
     """The time-warp U(t) = 1/2 + 1/2 sin(pi (t - 1/2)) (the same function as ``sigmoid_blend``).
 
     Args:
@@ -183,7 +186,7 @@ def sine_warp(t: float | Array) -> float | Array:
     return float(out) if np.ndim(t) == 0 else out
 
 
-def ease_in(t: float | Array) -> float | Array:
+def ease_in(t: float | FloatArray) -> float | FloatArray:
     """The ease-in time-warp U(t) = t^2.
 
     Args:
@@ -201,7 +204,7 @@ def ease_in(t: float | Array) -> float | Array:
 # Headings about +Y (quaternions (w, x, y, z), vectorised over leading axes)
 
 
-def yaw_quat(angle: float | Array) -> Array:
+def yaw_quat(angle: float | FloatArray) -> FloatArray:
     """Quaternion of a heading: rotation by ``angle`` about +Y.
 
     Args:
@@ -218,7 +221,7 @@ def yaw_quat(angle: float | Array) -> Array:
     return np.stack([np.cos(h), z, np.sin(h), z], axis=-1)
 
 
-def heading_of(q: Array) -> float | Array:
+def heading_of(q: FloatArray) -> float | FloatArray:
     """Heading of rotations: the angle of the rotated +Z axis about +Y, atan2(f_x, f_z).
 
     Args:
@@ -235,7 +238,7 @@ def heading_of(q: Array) -> float | Array:
     return float(out) if q.ndim == 1 else out
 
 
-def split_heading(q: Array) -> tuple[Array, Array]:
+def split_heading(q: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Split rotations into heading and tilt: q = yaw_quat(heading) * tilt, tilt with heading 0.
 
     Args:
@@ -253,16 +256,16 @@ def split_heading(q: Array) -> tuple[Array, Array]:
 # Root reorientation and repositioning (Alg 3.1 / 3.2)
 
 
-def _rot_xz(a: float | Array, dx: Array, dz: Array) -> tuple[Array, Array]:
+def _rot_xz(a: float | FloatArray, dx: FloatArray, dz: FloatArray) -> tuple[FloatArray, FloatArray]:
     ca, sa = np.cos(a), np.sin(a)
     return ca * dx + sa * dz, -sa * dx + ca * dz
 
 
 def reposition(
-    root_pos: Array,
-    heading: Array,
+    root_pos: FloatArray,
+    heading: FloatArray,
     start: tuple[float, float | None, float, float],
-) -> tuple[Array, Array]:
+) -> tuple[FloatArray, FloatArray]:
     """Move a root trajectory so that it starts at ``start`` (Alg 3.2, with a = dY^r).
 
     With dY^r = H_0' - H_0: X' = cos(a) dX + sin(a) dZ + X_0', Z' = -sin(a) dX + cos(a) dZ + Z_0',
@@ -292,7 +295,7 @@ def reposition(
     return out, hd + a
 
 
-def reorient(root_pos: Array, heading: Array) -> tuple[Array, Array]:
+def reorient(root_pos: FloatArray, heading: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Move a root trajectory to start at X = Z = 0 with heading 0, height untouched (Alg 3.1).
 
     X' = cos(-H_0) dX + sin(-H_0) dZ, Z' = -sin(-H_0) dX + cos(-H_0) dZ, heading' = heading - H_0.
@@ -335,7 +338,7 @@ class Motion(ABC):
 
     @property
     @abstractmethod
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """K_1 = 0 .. K_N = T^d."""
 
     @property
@@ -344,18 +347,18 @@ class Motion(ABC):
         """Number of scalar channels."""
 
     @abstractmethod
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """DOF values at verb time T: (C,) for a scalar T, (..., C) for an array."""
 
-    def t(self, T: float | Array) -> float | Array:
+    def t(self, T: float | FloatArray) -> float | FloatArray:
         """Canonical time of verb time T (eq 3.1)."""
         return canonical_time(T, self.key_times)
 
-    def T(self, t: float | Array) -> float | Array:
+    def T(self, t: float | FloatArray) -> float | FloatArray:
         """Verb time of canonical time t (eq 3.2)."""
         return verb_time(t, self.key_times)
 
-    def tau(self, T: float | Array) -> float | Array:
+    def tau(self, T: float | FloatArray) -> float | FloatArray:
         """Animation time tau(T) = tau_start + T."""
         return self.tau_start + np.asarray(T, dtype=float) if np.ndim(T) else self.tau_start + float(T)
 
@@ -382,9 +385,9 @@ class SampledMotion(Motion):
 
     def __init__(
         self,
-        times: Array,
-        values: Array,
-        key_times: Sequence[float] | Array | None = None,
+        times: FloatArray,
+        values: FloatArray,
+        key_times: Sequence[float] | FloatArray | None = None,
         *,
         root_dofs: bool = True,
         tau_start: float = 0.0,
@@ -412,7 +415,7 @@ class SampledMotion(Motion):
         return float(self._times[-1])
 
     @property
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """The key-times."""
         return self._key_times.copy()
 
@@ -421,7 +424,7 @@ class SampledMotion(Motion):
         """Number of channels."""
         return int(self._values.shape[1])
 
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """Linearly interpolated values, T clamped to [0, T^d].
 
         Args:
@@ -435,7 +438,7 @@ class SampledMotion(Motion):
         i = np.clip(np.searchsorted(self._times, flat, side="right") - 1, 0, self._times.size - 2)
         t0 = self._times[i]
         f = ((flat - t0) / (self._times[i + 1] - t0))[:, None]
-        out = (1.0 - f) * self._values[i] + f * self._values[i + 1]
+        out: FloatArray = (1.0 - f) * self._values[i] + f * self._values[i + 1]
         return out.reshape((*Ta.shape, self.num_dofs))
 
 
@@ -466,7 +469,7 @@ class Affine(Motion):
         return self.scale * self.inner.duration
 
     @property
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """s K'."""
         return self.scale * self.inner.key_times
 
@@ -475,7 +478,7 @@ class Affine(Motion):
         """Channels of M'."""
         return self.inner.num_dofs
 
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """theta'(T / s)."""
         return self.inner.theta(np.asarray(T, dtype=float) / self.scale)
 
@@ -494,7 +497,7 @@ class TimeWarp(Motion):
         ValueError: U does not fix 0 and 1.
     """
 
-    def __init__(self, motion: Motion, warp: Callable[[Array], Array], tol: float = 1e-12) -> None:
+    def __init__(self, motion: Motion, warp: Callable[[FloatArray], FloatArray], tol: float = 1e-12) -> None:
         u01 = np.asarray(warp(np.array([0.0, 1.0])), dtype=float)
         if abs(u01[0]) > 1e-12 or abs(u01[1] - 1.0) > 1e-12:
             raise ValueError(f"a time-warp must map 0 -> 0 and 1 -> 1, got {u01.tolist()}")
@@ -514,7 +517,7 @@ class TimeWarp(Motion):
         return self.inner.duration
 
     @property
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """w^-1(K')."""
         return self._key_times.copy()
 
@@ -523,12 +526,12 @@ class TimeWarp(Motion):
         """Channels of M'."""
         return self.inner.num_dofs
 
-    def w(self, T: float | Array) -> Array:
+    def w(self, T: float | FloatArray) -> FloatArray:
         """w(T) = T^d U(T / T^d)."""
         d = self.duration
         return d * np.asarray(self.warp(np.clip(np.asarray(T, dtype=float) / d, 0.0, 1.0)), dtype=float)
 
-    def inverse(self, Tw: float | Array) -> Array:
+    def inverse(self, Tw: float | FloatArray) -> FloatArray:
         """w^-1 by vectorised bisection (the smallest T with w(T) >= Tw).
 
         Args:
@@ -546,18 +549,19 @@ class TimeWarp(Motion):
             below = self.w(mid) < target
             lo = np.where(below, mid, lo)
             hi = np.where(below, hi, mid)
-        return 0.5 * (lo + hi)
+        inverse: FloatArray = 0.5 * (lo + hi)
+        return inverse
 
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """theta'(w(T))."""
         return self.inner.theta(self.w(T))
 
-    def t(self, T: float | Array) -> float | Array:
+    def t(self, T: float | FloatArray) -> float | FloatArray:
         """Canonical time t(T) = t'(w(T)) (the spec's fix); it sends K_m to (m-1)/(N-1)."""
         out = self.inner.t(self.w(T))
         return float(out) if np.ndim(T) == 0 else out
 
-    def T(self, t: float | Array) -> float | Array:
+    def T(self, t: float | FloatArray) -> float | FloatArray:
         """Verb time T(t) = w^-1(T'(t)), the inverse of ``t``."""
         out = self.inverse(self.inner.T(t))
         return float(out[0]) if np.ndim(t) == 0 else out.reshape(np.shape(t))
@@ -596,7 +600,7 @@ class Excerpt(Motion):
         return self.end - self.start
 
     @property
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """Shifted inner key-times."""
         return self._key_times.copy()
 
@@ -605,12 +609,12 @@ class Excerpt(Motion):
         """Channels of M'."""
         return self.inner.num_dofs
 
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """theta'(T + T_s)."""
         return self.inner.theta(np.clip(np.asarray(T, dtype=float), 0.0, self.duration) + self.start)
 
 
-def _default_cycle_mask(motion: Motion) -> Array:
+def _default_cycle_mask(motion: Motion) -> BoolArray:
     mask = np.ones(motion.num_dofs, dtype=bool)
     if motion.root_dofs:
         mask[[0, 2, 3]] = False  # X, Z and heading are carried by concatenation, never cyclified
@@ -631,7 +635,7 @@ class Cyclify(Motion):
         ValueError: a mask of the wrong length, or one that selects root X, Z or heading.
     """
 
-    def __init__(self, motion: Motion, mask: Sequence[bool] | Array | None = None) -> None:
+    def __init__(self, motion: Motion, mask: Sequence[bool] | BoolArray | None = None) -> None:
         c = _default_cycle_mask(motion) if mask is None else np.asarray(mask, dtype=bool)
         if c.shape != (motion.num_dofs,):
             raise ValueError(f"mask must have {motion.num_dofs} entries, got {c.shape}")
@@ -650,7 +654,7 @@ class Cyclify(Motion):
         return self.inner.duration
 
     @property
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """Unchanged."""
         return self.inner.key_times
 
@@ -659,14 +663,15 @@ class Cyclify(Motion):
         """Channels of M'."""
         return self.inner.num_dofs
 
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """theta' minus the ramp of the seam gap."""
         Ta = np.asarray(T, dtype=float)
         ramp = (np.clip(Ta, 0.0, self.duration) / self.duration - 0.5)[..., None]
-        return self.inner.theta(Ta) - ramp * self.gap
+        out: FloatArray = self.inner.theta(Ta) - ramp * self.gap
+        return out
 
 
-def cyclify_values(values: Array, mask: Sequence[bool] | Array | None = None) -> Array:
+def cyclify_values(values: FloatArray, mask: Sequence[bool] | BoolArray | None = None) -> FloatArray:
     """Cyclify uniformly sampled curves in place of an operator: v_k - (k/(F-1) - 1/2) d.
 
     Args:
@@ -690,7 +695,7 @@ def cyclify_values(values: Array, mask: Sequence[bool] | Array | None = None) ->
     return v - ramp * d
 
 
-def cyclify_rotations(rotations: Array) -> Array:
+def cyclify_rotations(rotations: FloatArray) -> FloatArray:
     """Cyclify uniformly sampled rotations: the seam rotation g = q(T^d) q(0)^-1 (as a rotation
     vector r) is spread as exp(-(k/(F-1) - 1/2) r) q_k, so the first and last samples coincide.
 
@@ -718,7 +723,7 @@ def find_cycle(
     window: float,
     *,
     step: float | None = None,
-    mask: Sequence[bool] | Array | None = None,
+    mask: Sequence[bool] | BoolArray | None = None,
 ) -> tuple[float, float]:
     """Best-matching pair of poses near both ends of a marked cycle (cyclification steps 1-2).
 
@@ -805,7 +810,7 @@ class Concatenation(Motion):
             last = self._root_world(i, m.theta(m.duration)[None, :])[0]
             end_x, end_z, end_h = float(last[0]), float(last[2]), float(last[3])
 
-    def _root_world(self, i: int, vals: Array) -> Array:
+    def _root_world(self, i: int, vals: FloatArray) -> FloatArray:
         x0n, z0n, a, x0, z0 = self._align[i]
         out = vals.copy()
         if self.root_dofs:
@@ -821,7 +826,7 @@ class Concatenation(Motion):
         return float(self.starts[-1])
 
     @property
-    def key_times(self) -> Array:
+    def key_times(self) -> FloatArray:
         """Union of the shifted key-times."""
         return self._key_times.copy()
 
@@ -844,7 +849,7 @@ class Concatenation(Motion):
         n = min(max(n, 0), len(self.parts) - 1)
         return n, Tc - float(self.starts[n])
 
-    def theta(self, T: float | Array) -> Array:
+    def theta(self, T: float | FloatArray) -> FloatArray:
         """theta_n(T_loc), root aligned."""
         Ta = np.clip(np.asarray(T, dtype=float), 0.0, self.duration)
         flat = Ta.reshape(-1)

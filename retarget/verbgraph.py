@@ -21,19 +21,22 @@ import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 
 from capture.errors import RetargetError
 from capture.quat import quat_mul, quat_slerp
-from retarget.adverbs import Verb, VerbFrame
+from retarget._types import FloatArray
 from retarget.timeline import sigmoid_blend, yaw_quat
+
+if TYPE_CHECKING:
+    from retarget.adverbs import Verb, VerbFrame
 
 __all__ = ["Actor", "ActorPose", "BlendedTransition", "Transition", "TransitionFrame", "VerbGraph"]
 
-Array = np.ndarray
-BlendFunction = Callable[[float | Array], float | Array]
+BlendFunction = Callable[[float | FloatArray], float | FloatArray]
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,16 +95,16 @@ class TransitionFrame:
         t: (...,) canonical time of the transition.
     """
 
-    root_pos: Array
-    heading: Array
-    root_velocity: Array
-    heading_rate: Array
-    rotations: Array
-    alpha: Array
-    t: Array
+    root_pos: FloatArray
+    heading: FloatArray
+    root_velocity: FloatArray
+    heading_rate: FloatArray
+    rotations: FloatArray
+    alpha: FloatArray
+    t: FloatArray
 
 
-def _rot_y(a: float | Array, x: Array, z: Array) -> tuple[Array, Array]:
+def _rot_y(a: float | FloatArray, x: FloatArray, z: FloatArray) -> tuple[FloatArray, FloatArray]:
     ca, sa = np.cos(a), np.sin(a)
     return ca * x + sa * z, -sa * x + ca * z
 
@@ -130,9 +133,9 @@ class BlendedTransition:
         self,
         transition: Transition,
         verb_a: Verb,
-        p_a: Array,
+        p_a: FloatArray,
         verb_b: Verb,
-        p_b: Array,
+        p_b: FloatArray,
         *,
         grid: int = 257,
     ) -> None:
@@ -161,14 +164,14 @@ class BlendedTransition:
         self._velocity = self._path.derivative()
         self._turn_rate = self._heading.derivative()
 
-    def _ends(self, T: Array) -> tuple[VerbFrame, VerbFrame, Array]:
+    def _ends(self, T: FloatArray) -> tuple[VerbFrame, VerbFrame, FloatArray]:
         fa = self.verb_a.at_time(self.p_a, T + self.a_offset)
         fb = self.verb_b.at_time(self.p_b, T + self.b_offset)
         t = np.clip(np.asarray(T, dtype=float) / self.duration, 0.0, 1.0)
         alpha = np.asarray(self.transition.blend(t), dtype=float)
         return fa, fb, alpha
 
-    def root(self, T: float | Array) -> tuple[Array, Array]:
+    def root(self, T: float | FloatArray) -> tuple[FloatArray, FloatArray]:
         """The root path: horizontal position (X, Z) and heading at transition time(s) T (clamped).
 
         Args:
@@ -180,7 +183,7 @@ class BlendedTransition:
         Tc = np.clip(np.asarray(T, dtype=float), 0.0, self.duration)
         return self._path(Tc), self._heading(Tc)
 
-    def frame(self, T: float | Array) -> TransitionFrame:
+    def frame(self, T: float | FloatArray) -> TransitionFrame:
         """Everything at transition time(s) T (clamped to [0, T^d]).
 
         Args:
@@ -244,9 +247,9 @@ class ActorPose:
     """
 
     tau: float
-    root_pos: Array
+    root_pos: FloatArray
     heading: float
-    rotations: Array
+    rotations: FloatArray
     item: str
     usage: str
     t: float
@@ -286,14 +289,14 @@ class Actor:
     t_out: float
     tau_in: float
     queue: deque[QueueItem]
-    adverbs: dict[str, Array]
-    targets: dict[str, Array]
+    adverbs: dict[str, FloatArray]
+    targets: dict[str, FloatArray]
     adverb_rate: float
-    root_xz: Array
+    root_xz: FloatArray
     height: float
     heading: float
     frame_angle: float
-    rotations: Array
+    rotations: FloatArray
     hold: bool = False
     usage: str = ""
     item_t: float = 0.0
@@ -422,7 +425,7 @@ class VerbGraph:
             return math.inf
         return actor.tau_in + self._T0(actor, actor.t_out) - self._T0(actor, actor.t_in)
 
-    def _local(self, actor: Actor, T: Array) -> tuple[Array, Array, Array, Array, float]:
+    def _local(self, actor: Actor, T: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
         """Root (xz, height, heading) and rotations of the front item at item times T (2 values)."""
         f = actor.front
         if isinstance(f, str):
@@ -487,7 +490,7 @@ class VerbGraph:
         t_start: float = 0.0,
         position: Sequence[float] = (0.0, 0.0),
         heading: float = 0.0,
-        adverbs: Mapping[str, Sequence[float] | Array] | None = None,
+        adverbs: Mapping[str, Sequence[float] | FloatArray] | None = None,
         adverb_rate: float = math.inf,
     ) -> Actor:
         """Place an actor in a start verb.
@@ -551,7 +554,7 @@ class VerbGraph:
         self.actors[name] = actor
         return actor
 
-    def set_adverbs(self, name: str, verb: str, p: Sequence[float] | Array) -> None:
+    def set_adverbs(self, name: str, verb: str, p: Sequence[float] | FloatArray) -> None:
         """Set the adverb target of one verb for an actor (reached at the actor's adverb rate).
 
         Args:

@@ -23,9 +23,9 @@ identical bytes.
 from __future__ import annotations
 
 import struct
-from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pythonosc import osc_bundle, osc_message
@@ -34,17 +34,22 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from retarget._types import FloatArray
+
 ROOT_NAME = "root"
 
 
-def to_unity_position(p: np.ndarray) -> np.ndarray:
+def to_unity_position(p: FloatArray) -> FloatArray:
     """Right-handed (perfcap) to left-handed (Unity) positions, ``(..., 3)``."""
     out = np.array(p, np.float64, copy=True)
     out[..., 0] = -out[..., 0]
     return out
 
 
-def to_unity_quaternion(q: np.ndarray) -> np.ndarray:
+def to_unity_quaternion(q: FloatArray) -> FloatArray:
     """Right-handed (perfcap, w x y z) to left-handed (Unity) rotations, returned as (x, y, z, w)."""
     q = np.asarray(q, np.float64)
     return np.stack([q[..., 1], -q[..., 2], -q[..., 3], q[..., 0]], axis=-1)
@@ -62,8 +67,8 @@ def _message(address: str, args: list[str | int | float]) -> OscMessage:
     return b.build()
 
 
-def _check_frame(n: int, local_pos: np.ndarray, local_rot: np.ndarray, root_pos: np.ndarray,
-                 root_rot: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _check_frame(n: int, local_pos: FloatArray, local_rot: FloatArray, root_pos: FloatArray,
+                 root_rot: FloatArray, t: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     lp = np.asarray(local_pos, np.float64)
     lr = np.asarray(local_rot, np.float64)
     rp = np.asarray(root_pos, np.float64)
@@ -77,8 +82,8 @@ def _check_frame(n: int, local_pos: np.ndarray, local_rot: np.ndarray, root_pos:
     return lp, lr, rp, rr
 
 
-def build_frame(names: Sequence[str], local_pos: np.ndarray, local_rot: np.ndarray, root_pos: np.ndarray,
-                root_rot: np.ndarray, t: float) -> bytes:
+def build_frame(names: Sequence[str], local_pos: FloatArray, local_rot: FloatArray, root_pos: FloatArray,
+                root_rot: FloatArray, t: float) -> bytes:
     """One frame as an OSC bundle, every message built by python-osc (the reference for
     :class:`VmcEncoder`; arguments as in :meth:`VmcEncoder.encode`)."""
     lp, lr, rp, rr = _check_frame(len(names), local_pos, local_rot, root_pos, root_rot, t)
@@ -123,7 +128,7 @@ class VmcEncoder:
         self._template = template
         self._values = np.empty(1 + 7 * (n + 1), ">f4")
 
-    def encode(self, local_pos: np.ndarray, local_rot: np.ndarray, root_pos: np.ndarray, root_rot: np.ndarray,
+    def encode(self, local_pos: FloatArray, local_rot: FloatArray, root_pos: FloatArray, root_rot: FloatArray,
                t: float) -> bytes:
         """One frame as an OSC bundle.
 
@@ -159,8 +164,8 @@ def _encoder(names: tuple[str, ...]) -> VmcEncoder:
     return VmcEncoder(names)
 
 
-def encode_frame(names: Sequence[str], local_pos: np.ndarray, local_rot: np.ndarray, root_pos: np.ndarray,
-                 root_rot: np.ndarray, t: float) -> bytes:
+def encode_frame(names: Sequence[str], local_pos: FloatArray, local_rot: FloatArray, root_pos: FloatArray,
+                 root_rot: FloatArray, t: float) -> bytes:
     """One frame as an OSC bundle (:meth:`VmcEncoder.encode`, with the encoder for ``names`` kept).
 
     Raises:
