@@ -182,7 +182,8 @@ class CurveLayout:
 # Examples and verbs
 
 
-def _resample(times: FloatArray, root_pos: FloatArray, rotations: FloatArray, T: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _resample(times: FloatArray, root_pos: FloatArray, rotations: FloatArray,
+              T: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Linear root and slerped rotations at times T (clamped)."""
     Tc = np.clip(T, times[0], times[-1])
     i = np.clip(np.searchsorted(times, Tc, side="right") - 1, 0, times.size - 2)
@@ -634,7 +635,8 @@ class Verb:
         out = np.interp(t, self._tgrid, k)
         return float(out) if np.ndim(t) == 0 else out
 
-    def _dt_dT(self, k: FloatArray, t: FloatArray) -> FloatArray:
+    def _canonical_rate(self, k: FloatArray, t: FloatArray) -> FloatArray:
+        """dt/dT, canonical time per second of verb time, at canonical times ``t`` under key-times ``k``."""
         n = k.size - 1
         tc = np.mod(t, 1.0) if self.periodic else np.clip(t, 0.0, 1.0)
         m = np.minimum(np.floor(tc * n).astype(int), n - 1)
@@ -680,7 +682,8 @@ class Verb:
         f2, f3, g = f * f, f * f * f, 1.0 - f
         wd = np.array(
             [
-                [g * g * g / 6.0, (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0, (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0, f3 / 6.0],
+                [g * g * g / 6.0, (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
+                 (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0, f3 / 6.0],
                 [-0.5 * g * g * seg, (1.5 * f2 - 2.0 * f) * seg, (-1.5 * f2 + f + 0.5) * seg, 0.5 * f2 * seg],
             ]
         )
@@ -732,7 +735,7 @@ class Verb:
         dvals = np.einsum("...i,...ic->...c", dw, rows)
         nj3 = 3 * self.num_joints
         rot = quat_mul(self.reference, quat_exp(vals[..., :nj3].reshape((*ta.shape, self.num_joints, 3))))
-        scale = self._dt_dT(b.key_times, tw)[..., None]
+        scale = self._canonical_rate(b.key_times, tw)[..., None]
         pos = vals[..., nj3 : nj3 + 3] + tw[..., None] * b.disp
         vel = (dvals[..., nj3 : nj3 + 3] + b.disp) * scale
         heading = vals[..., nj3 + 3] + tw * b.turn

@@ -9,7 +9,8 @@ as a joint named ``<parent>_end`` with an identity rotation. Any malformed input
 ``TraceError`` with the path and line number.
 
 Writing nests the joints depth-first (children in index order; a skeleton listed in another parent-first
-order reads back in that depth-first order), gives the root six channels (positions, then the rotation order) and every other joint three;
+order reads back in that depth-first order), gives the root six channels (positions, then the rotation
+order) and every other joint three;
 a leaf named ``*_end`` is written as an End Site, any other leaf gets an End Site half its own bone long.
 Values are written with 8 decimals, so a clip read back has the same forward kinematics within 1e-6 m.
 """

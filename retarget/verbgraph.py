@@ -406,7 +406,8 @@ class VerbGraph:
             self._blends[key] = bt
         return bt
 
-    def _T0(self, actor: Actor, t: float) -> float:
+    def _front_time(self, actor: Actor, t: float) -> float:
+        """T_0(t): the verb time at canonical time ``t`` of the item at the front of the queue (Q_0)."""
         f = actor.front
         if isinstance(f, str):
             return float(self.verbs[f].verb_time(actor.adverbs[f], t))
@@ -423,7 +424,7 @@ class VerbGraph:
         """
         if actor.hold:
             return math.inf
-        return actor.tau_in + self._T0(actor, actor.t_out) - self._T0(actor, actor.t_in)
+        return actor.tau_in + self._front_time(actor, actor.t_out) - self._front_time(actor, actor.t_in)
 
     def _local(self, actor: Actor, T: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
         """Root (xz, height, heading) and rotations of the front item at item times T (2 values)."""
@@ -437,7 +438,7 @@ class VerbGraph:
         return fr2.root_pos[:, [0, 2]], fr2.root_pos[:, 1], fr2.heading, fr2.rotations[-1], float(fr2.t[-1])
 
     def _set_frame(self, actor: Actor) -> None:
-        T = self._T0(actor, actor.t_in)
+        T = self._front_time(actor, actor.t_in)
         _, _, h, _, _ = self._local(actor, np.array([T, T]))
         actor.frame_angle = actor.heading - float(h[0])
 
@@ -545,7 +546,7 @@ class VerbGraph:
             rotations=np.tile([1.0, 0.0, 0.0, 0.0], (nj, 1)),
         )
         self._enter(actor)
-        T = self._T0(actor, actor.t_in)
+        T = self._front_time(actor, actor.t_in)
         _, y, _h, rot, t = self._local(actor, np.array([T, T]))
         actor.height = float(y[-1])
         actor.rotations = rot.copy()
@@ -597,7 +598,7 @@ class VerbGraph:
         if isinstance(actor.front, str):
             base = actor.front
             fr = self.verbs[base]
-            T_now = self._T0(actor, actor.t_in) + (actor.tau_now - actor.tau_in)
+            T_now = self._front_time(actor, actor.t_in) + (actor.tau_now - actor.tau_in)
             t_from = float(fr.canonical_time(actor.adverbs[base], T_now))
             keep = 1
         else:
@@ -683,10 +684,10 @@ class VerbGraph:
 
     def _position(self, actor: Actor, tau: float) -> None:
         """PositionDOFs (Alg 5.2): root by deltas under the current adverbs, the rest absolute."""
-        T_in = self._T0(actor, actor.t_in)
+        T_in = self._front_time(actor, actor.t_in)
         T = np.array([T_in + (actor.tau_now - actor.tau_in), T_in + (tau - actor.tau_in)])
         if actor.hold:  # no exit: the item stops at its end and the actor holds that pose
-            T = np.minimum(T, self._T0(actor, actor.t_out))
+            T = np.minimum(T, self._front_time(actor, actor.t_out))
         xz, y, h, rot, t = self._local(actor, T)
         dx, dz = _rot_y(actor.frame_angle, xz[1, 0] - xz[0, 0], xz[1, 1] - xz[0, 1])
         actor.root_xz = actor.root_xz + np.array([dx, dz])

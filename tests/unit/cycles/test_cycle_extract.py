@@ -368,7 +368,8 @@ def test_layering_aligns_to_the_master_clock() -> None:
     np.testing.assert_allclose(layered.at(tt), truth, atol=0.02)
     # and the master itself starts at its first cut
     m0 = master.loop_spans_s[0, 0]
-    np.testing.assert_allclose(master.at(tt), np.stack([np.sin(2 * np.pi * (tt + m0)), np.cos(4 * np.pi * (tt + m0))], 1),
+    expected = np.stack([np.sin(2 * np.pi * (tt + m0)), np.cos(4 * np.pi * (tt + m0))], 1)
+    np.testing.assert_allclose(master.at(tt), expected,
                                atol=0.02)
 
 

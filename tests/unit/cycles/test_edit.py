@@ -111,7 +111,8 @@ class TestFalloffWeights:
             falloff_weights(m, i, tau, sigma)
 
     def test_numpy_integers_are_accepted(self):
-        np.testing.assert_array_equal(falloff_weights(np.int64(60), np.int32(10), np.int16(3)), falloff_weights(60, 10, 3))
+        np.testing.assert_array_equal(falloff_weights(np.int64(60), np.int32(10), np.int16(3)),
+                                      falloff_weights(60, 10, 3))
 
 
 class TestEditTranslation:
@@ -274,7 +275,7 @@ class TestEditScale:
     @pytest.mark.parametrize(
         ("S", "factor"),
         [
-            (np.zeros((5, 2)) + [1.0, 0.0], np.ones(2)),
+            (np.zeros((5, 2)) + np.array([1.0, 0.0]), np.ones(2)),
             (np.full((5, 2), -1.0), np.ones(2)),
             (np.ones((5, 2)), np.array([1.0, 0.0])),
             (np.ones((5, 2)), np.array([1.0, -2.0])),
@@ -677,7 +678,7 @@ class TestFixSliding:
     def test_no_contact_changes_nothing(self):
         m, period = 60, 1.0
         root, items = _walk(m, period)
-        lifted = {k: v + [0.0, 2.0, 0.0] for k, v in items.items()}
+        lifted = {k: v + np.array([0.0, 2.0, 0.0]) for k, v in items.items()}
         res = fix_sliding(lifted, root, period)
         assert all(v == [] for v in res.intervals.values())
         np.testing.assert_array_equal(res.root, root)

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -32,6 +32,9 @@ from retarget.states import (
     PuppetState,
     next_state,
 )
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 S = PuppetState
 E = PuppetEvent

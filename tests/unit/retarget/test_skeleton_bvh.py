@@ -50,7 +50,7 @@ def cmu_path(name: str) -> Path:
 def random_quats(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     n = int(np.prod(shape))
     xyzw = Rotation.random(n, random_state=int(rng.integers(1 << 31))).as_quat()
-    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1).reshape(shape + (4,))
+    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1).reshape((*shape, 4))
 
 
 def naive_fk(sk: Skeleton, root: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +153,7 @@ def test_fk_matches_a_joint_by_joint_reference(frames: int) -> None:
 def test_fk_identity_is_the_rest_pose_and_shapes_are_checked() -> None:
     sk = humanoid()
     ident = np.tile([1.0, 0, 0, 0], (sk.n_joints, 1))
-    np.testing.assert_allclose(sk.fk(np.array([1.0, 2.0, 3.0]), ident), sk.rest_positions() + [1, 2, 3])
+    np.testing.assert_allclose(sk.fk(np.array([1.0, 2.0, 3.0]), ident), sk.rest_positions() + np.array([1, 2, 3]))
     with pytest.raises(ValueError, match="expected"):
         sk.fk(np.zeros(3), ident[:-1])
     with pytest.raises(ValueError, match="expected"):
@@ -417,7 +417,7 @@ def mutate(old: str, new: str) -> str:
     (mutate("\t\tEnd Site", "\t\tEnd Sight"), 10, "'Site'"),
     (mutate("HIERARCHY", "HIERARCHIES"), 1, "expected HIERARCHY"),
     (mutate("MOTION\n", "MOVEMENT\n"), 16, "unexpected 'MOVEMENT'"),
-    (GOOD.split("MOTION")[0], 15, "no MOTION"),
+    (GOOD.split("MOTION", maxsplit=1)[0], 15, "no MOTION"),
     ("", 1, "empty"),
 ])
 def test_malformed_bvh_raises_a_one_line_trace_error(text: str, line: int, words: str) -> None:

@@ -242,7 +242,8 @@ def test_request_and_errors() -> None:
 def test_design_time_checks() -> None:
     verbs = {"walk": walk_verb(), "idle": idle_verb()}
     with pytest.raises(ValueError, match="after its last exit"):
-        VerbGraph(verbs, [Transition("walk", "idle", 0.4, 0.6, 0.5, 0.9), Transition("idle", "walk", 0.5, 0.7, 0.0, 0.2)])
+        VerbGraph(verbs, [Transition("walk", "idle", 0.4, 0.6, 0.5, 0.9),
+                          Transition("idle", "walk", 0.5, 0.7, 0.0, 0.2)])
     with pytest.raises(ValueError):
         VerbGraph(verbs, [Transition("walk", "run", 0.4, 0.6, 0.1, 0.3)])
     with pytest.raises(ValueError):

@@ -71,7 +71,8 @@ def test_bad_frames_raise_value_error() -> None:
     with pytest.raises(ValueError):
         encode_frame(["a"], np.zeros((2, 3)), np.zeros((1, 4)), np.zeros(3), np.array([1.0, 0, 0, 0]), 0.0)
     with pytest.raises(ValueError):
-        encode_frame(["a"], np.full((1, 3), np.nan), np.array([[1.0, 0, 0, 0]]), np.zeros(3), np.array([1.0, 0, 0, 0]), 0.0)
+        encode_frame(["a"], np.full((1, 3), np.nan), np.array([[1.0, 0, 0, 0]]), np.zeros(3),
+                     np.array([1.0, 0, 0, 0]), 0.0)
     with pytest.raises(ValueError):
         decode_frame(b"/VMC/Ext/OK\x00")
     with pytest.raises(ValueError):
