@@ -119,9 +119,10 @@ class Alignment:
 
 
 def align(h: FloatArray, g: FloatArray, loops: list[tuple[float, float]], period: float, k: int) -> Alignment:
-    """Correspondence (spec §1.3): anchors evenly spaced in the reference loop (the one closest to the
-    median length), each matched by d_D within ceil(T/8) of its proportional place in every other loop,
-    kept monotone; the anchors' common place is their mean normalised position."""
+    """Correspondence (Ciccone 2019, section 5.3, "Average cycle"; the details are perfcap's): anchors
+    evenly spaced in the reference loop (the one closest to the median length), each matched by d_D within
+    ceil(T/8) of its proportional place in every other loop, kept monotone; the anchors' common place is
+    their mean normalised position."""
     n = h.shape[0]
     lengths = np.array([b - a for a, b in loops])
     ref = int(np.argmin(np.abs(lengths - np.median(lengths))))

@@ -297,7 +297,8 @@ def fix_sliding(
 ) -> ContactResult:
     """Make items in contact with a plane stop sliding, and move the root so the character travels.
 
-    Implements spec 2.3 (eq. 5.12) on one cycle of ``m`` frames at times ``i * period / m``:
+    Implements Ciccone 2019's contacts (section 5.4.3, eq. 5.12) on one cycle of ``m`` frames at times
+    ``i * period / m``; steps 2 to 4 fill in what the thesis leaves open (``docs/design/cycles.md``):
 
     1. Each item's world position (root + root-relative) is projected onto the plane where it is within
        ``eps`` of it (``project_to_plane``), or at the frames ``contacts`` marks for it (the thesis's

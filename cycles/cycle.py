@@ -135,6 +135,9 @@ def layer_onto(new: Cycle, master: Cycle, master_start_s: float) -> Cycle:
     The performer followed the playback, which started (phase 0 of ``master``) at ``master_start_s`` in
     the new take's time base. The new cycle is time-scaled to the master period and shifted so that its
     time 0 is the master's phase 0: played together from the same instant, the layers stay in step.
+    Ciccone 2019 (sections 5.2 and 5.4.2) performs layers over the playback of earlier ones and leaves
+    the fine synchronisation to the MoCurve re-timing; this coarse alignment from the known playback
+    phase is perfcap's (``docs/design/cycles.md``).
 
     Args:
         new: the cycle extracted from the take performed over the playback.

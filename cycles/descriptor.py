@@ -1,4 +1,5 @@
-"""The curve descriptor of Ciccone 2019 eq. 5.1-5.2, and the small numeric helpers around it.
+"""The curve descriptor of Ciccone 2019 (ETH Diss. 25792, section 5.3, eq. 5.1-5.2), and the small numeric
+helpers around it.
 
 For samples theta_i of an N-channel curve on a uniform grid, ``h_i`` stacks the windowed sums of the
 first derivative over radii 0..k and ``g_i`` the same for the second derivative, so both have

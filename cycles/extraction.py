@@ -85,13 +85,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ExtractOptions:
-    """Tuning of :func:`extract`. The defaults are the thesis's values and the spec's proposals.
+    """Tuning of :func:`extract`. ``k`` and ``seeds`` default to Ciccone 2019's values (section 5.3); the
+    rest are perfcap's (the thesis has no such settings), explained in ``docs/design/cycles.md``.
 
     Attributes:
-        k: descriptor radius (thesis: 5).
-        seeds: random seed instants (thesis: 10, median kept).
+        k: descriptor radius (the thesis uses 5).
+        seeds: random seed instants (the thesis uses 10 and keeps the median period).
         min_seeds: fewer seeds with a period than this raises :class:`NoPeriodFoundError`.
-        min_consistency: smallest consistency R accepted (spec: 0.8).
+        min_consistency: smallest consistency R accepted (perfcap's acceptance test; 0.8).
         candidate_margin: a shorter candidate period wins over a better one if its R is within this.
         max_candidates: autocorrelation peaks tried as period candidates.
         max_components: descriptor dimensions kept for wide inputs.
@@ -148,7 +149,7 @@ def _needed_r(opts: ExtractOptions, loops: int) -> float:
     """The consistency a candidate with ``loops`` loops needs: ``min_consistency`` up to 4 loops, then
     down to 0.2 less at 16 loops or more. Loops that do not repeat agree by chance about 1/p, so many
     loops that agree fairly well are as strong evidence as a few that agree very well (real takes,
-    gait for one, are noisier than the spec's synthetic loops)."""
+    gait for one, are noisier than synthetic loops)."""
     return opts.min_consistency - 0.2 * min(1.0, max(0.0, (loops - 4) / 12.0))
 
 

@@ -130,9 +130,11 @@ def loops_of(chain: Chain, tau: float) -> list[tuple[float, float]]:
 
 def smallest_feasible_period(matches: FloatArray, seed: float, first: float, last: float, t_min: int,
                              t_max: int) -> int | None:
-    """Eq. 5.3 with the spec's bounds: the smallest integer period T (samples) such that for every k
-    from ceil((first - seed) / T) to floor((last - seed) / T) some match lies within ceil(T / 8) of
-    seed + kT. ``None`` if no T in ``[t_min, t_max]`` qualifies."""
+    """Eq. 5.3 of Ciccone 2019 (section 5.3), with perfcap's bounds on k: the smallest integer period T
+    (samples) such that for every k from ceil((first - seed) / T) to floor((last - seed) / T) some match
+    lies within ceil(T / 8) of seed + kT. The thesis writes the upper bound as a ceiling, which asks for a
+    match past the end of the take; ``docs/design/cycles.md``. ``None`` if no T in ``[t_min, t_max]``
+    qualifies."""
     j = np.sort(np.asarray(matches, np.float64))
     t_min = max(1, t_min)
     if j.size == 0 or t_max < t_min:

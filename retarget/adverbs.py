@@ -1,4 +1,5 @@
-"""Verbs (Rose 1999, ch. 4): example motions blended over adverb space.
+"""Verbs (Rose 1999, *Verbs and Adverbs: Multidimensional Motion Interpolation Using Radial Basis
+Functions*, Princeton PhD thesis, chapter 4): example motions blended over adverb space.
 
 This module owns ``Verb`` and what it is built from: ``Example`` (one example motion at its adverb point),
 ``CurveLayout`` (the uniform cubic B-spline every example is fitted with in canonical time, section 4.2),

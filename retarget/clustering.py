@@ -142,8 +142,9 @@ def improved_clustering(
     rng: np.random.Generator,
     restarts: int = 32,
 ) -> Clustering:
-    """ImprovedClustering (Alg 4.2): start at D + 1 clusters (the spec's fix) and add clusters while the
-    cost exceeds ``max_cost`` and the count is below ``max_clusters``.
+    """ImprovedClustering (Rose 1999, Alg 4.2): start at D + 1 clusters (perfcap's correction: the thesis
+    starts at D, one fewer than the linear part needs) and add clusters while the cost exceeds ``max_cost``
+    and the count is below ``max_clusters``.
 
     Args:
         points: (m, D).

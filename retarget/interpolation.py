@@ -1,5 +1,5 @@
-"""Scattered-data interpolation over adverb space (Rose 1999, ch. 4): the radial basis interpolant of
-section 4.3 and its multiresolution form of section 4.6.
+"""Scattered-data interpolation over adverb space (Rose 1999, *Verbs and Adverbs*, Princeton PhD thesis,
+chapter 4): the radial basis interpolant of section 4.3 and its multiresolution form of section 4.6.
 
 This module owns the cubic B-spline radial function (``bspline_kernel``), ``RBF`` (eq. 4.2-4.5: a linear
 part fitted by SVD least squares, then radial functions B(|p - p_i| / alpha_i), alpha_i the distance from

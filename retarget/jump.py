@@ -1,24 +1,28 @@
 """The jump: the side-view parabola refitted every frame, and the rules that make a jump invalid.
 
-This module owns the spec's section 3.4 (Ciccone 2019, L1199-1210, eq. 6.3 corrected):
+This module owns the jump of Ciccone 2019, *Intuitive Control of Animated Scenes* (ETH Diss. 25792),
+section 6.3: a side-view parabola (eq. 6.3) refitted every frame whose apex drives the jump animation, and
+three rules that send an invalid jump to the ragdoll. Eq. 6.3 is used as perfcap corrects it (its b has
+the wrong sign on one term and its c does not follow from the fit's conditions; the derivation is in
+``docs/design/puppet.md``), and every threshold is perfcap's, the thesis giving none:
 
 * ``fit_parabola``: ``y = a x^2 + b x + c`` through the start ``(x0, y0)`` and the current point
   ``(xt, yt)`` with the current slope ``y't``::
 
       a = (y't (xt - x0) - yt + y0) / (xt - x0)^2
-      b = (y't (x0^2 - xt^2) + 2 xt (yt - y0)) / (xt - x0)^2     (the thesis prints -2 xt (...): wrong)
-      c = y0 - a x0^2 - b x0
+      b = (y't (x0^2 - xt^2) + 2 xt (yt - y0)) / (xt - x0)^2     (perfcap's correction of the sign)
+      c = y0 - a x0^2 - b x0                                   (the parabola through the start point)
 
   and its apex ``(-b / 2a, y(-b / 2a))`` when ``a < 0``.
 * ``fit_arc``: ``x`` is the horizontal displacement along the takeoff direction and the slope is
   ``v_y / v_x``; when the puppet has moved less than 2 cm sideways (a vertical jump) or has no speed along
   that direction, the same fit runs on time instead, ``y(t)`` with slope ``v_y``.
-* ``JumpTracker``: follows one jump from its trigger and applies the three invalid-jump rules with the
-  spec's [P] thresholds: (1) it rises again after starting to descend (``v_y`` below -0.05 m/s starts the
+* ``JumpTracker``: follows one jump from its trigger and applies the thesis's three invalid-jump rules
+  with perfcap's thresholds: (1) it rises again after starting to descend (``v_y`` below -0.05 m/s starts the
   descent, above +0.05 m/s after that is a second rise); (2) it turns in the air (facing or travel heading
   more than 30 degrees from the takeoff's); (3) it stops in the air (speed below 0.1 m/s for more than
   0.15 s while above the ground). A fitted ``a >= 0`` (no apex) is allowed only during the first 0.1 s
-  after takeoff, and (our addition) a jump airborne for more than 1.5 s is invalid too.
+  after takeoff, and (perfcap's addition) a jump airborne for more than 1.5 s is invalid too.
 
 Units: metres, seconds, radians; Y is up, heading ``theta`` sends +Z to ``(sin theta, 0, cos theta)``.
 Nothing here reads a clock: time comes with every update.
@@ -126,7 +130,7 @@ def fit_arc(*, dt: float, dx: float, dy: float, vx: float, vy: float,
         dy: height change since the start, metres.
         vx: current horizontal speed along the takeoff direction, m/s.
         vy: current vertical speed, m/s.
-        vertical_threshold: below this ``|dx|`` (m) the fit runs on time (spec: 2 cm).
+        vertical_threshold: below this ``|dx|`` (m) the fit runs on time (perfcap's 2 cm).
         min_vx: below this ``|vx|`` (m/s) the slope ``vy / vx`` is meaningless and the fit runs on time.
 
     Returns:
@@ -167,7 +171,8 @@ class InvalidJump(enum.Enum):
 
 @dataclass(frozen=True, slots=True)
 class JumpConfig:
-    """Thresholds of the invalid-jump rules (spec 3.4 [P] values by default).
+    """Thresholds of the invalid-jump rules of Ciccone 2019, section 6.3 (the values are perfcap's; the thesis
+    names the rules only).
 
     Attributes:
         vy_hysteresis: ``v_y`` below ``-vy_hysteresis`` starts the descent; above ``+vy_hysteresis`` after

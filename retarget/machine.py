@@ -1,7 +1,7 @@
 """The puppet's state machine: a pure transition function and the per-frame event derivation.
 
-This module owns *when* the puppet changes state (spec ``cycles-and-puppet.md`` section 3.2 and 3.4). The
-table itself lives in ``retarget.states``; here:
+This module owns *when* the puppet changes state (Ciccone 2019, ETH Diss. 25792, chapter 6: the state
+machine of section 6.2.2 and the jump of section 6.3). The table itself lives in ``retarget.states``; here:
 
 * ``PuppetStateMachine.handle(event)`` looks the event up in ``TRANSITIONS``, switches state and returns a
   ``Transition`` with the actions the retargeter must run (exit, event, entry). An event the table does not
@@ -118,21 +118,26 @@ class PuppetContext:
 
 @dataclass(frozen=True, slots=True)
 class MachineConfig:
-    """Thresholds and durations of the state machine (spec [P] defaults; the rest are our choices).
+    """Thresholds and durations of the state machine.
+
+    Ciccone 2019 (section 6.3) says what triggers a jump (lifting the phone fast enough), that a short
+    forced delay builds the anticipation squat and that a valid jump lands with a very short crouch, but
+    gives no number: every default here is perfcap's choice (``docs/design/puppet.md``).
 
     Attributes:
         character_height: the puppet's height, metres; ``v_jump`` scales with it.
         reference_height: the height ``v_jump`` is given for, metres.
-        v_jump: lift speed that triggers a jump at the reference height, m/s (spec: 1.0).
+        v_jump: lift speed that triggers a jump at the reference height, m/s (1.0).
         jump_dwell: ``v_up`` must exceed the scaled ``v_jump`` this long, s (rejects one-frame spikes).
-        anticipation: squat delay between trigger and takeoff, s (spec: 0.2).
-        landing: landing crouch, s (spec: 0.2).
-        above_ground: stick height above which the puppet counts as held above the ground, m (spec: 0.15).
+        anticipation: squat delay between trigger and takeoff, s (0.2).
+        landing: landing crouch, s (0.2).
+        above_ground: stick height above which the puppet counts as held above the ground, m (0.15).
         ground_hysteresis: it is back on the ground only below ``above_ground - ground_hysteresis``, m.
         unsupported_dwell: held above the ground this long (no jump) -> ragdoll, s; also how long the stick
             may race faster than ``max_speedup`` times the fastest clip.
-        max_speedup: the most the locomotion plays faster than its own pace (the spec's out-of-range
-            speed-up); a stick dragged faster than that fits no animation -> ragdoll (our addition).
+        max_speedup: the most the locomotion plays faster than its own pace (the out-of-range speed-up
+            of section 6.2.3, capped); a stick dragged faster than that fits no animation -> ragdoll
+            (perfcap's addition).
         near_ground: in ragdoll, a held stick this low counts as near the ground, m.
         rest_dwell: the ragdoll must be at rest (and released or near the ground) this long, s.
         get_up_duration: the get-up clip's duration, s.

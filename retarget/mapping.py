@@ -1,6 +1,10 @@
 """From phone input to blend-space parameters: linear axes, the probe lookup table, smoothing.
 
-This module owns the spec's section 3.3 (Ciccone 2019, L1156-1182):
+This module owns the animation-blending mappings of Ciccone 2019, *Intuitive Control of Animated Scenes*
+(ETH Diss. 25792), section 6.2.3 (the linear height mapping, the probe lookup table with inverse distance
+weighting, eq. 6.1-6.2 with q = 7, and the speed-up for input beyond the feasible set). The grid size,
+the log-space weights, the exact-hit tolerance, the 2-D border and the input smoothing are perfcap's
+(``docs/design/puppet.md``):
 
 * ``AxisMap``: the linear mapping ``p(u) = (u - a) / (b - a)`` clamped to [0, 1] (e.g. the phone's height
   to the crouch parameter ``p_height``; ``a`` and ``b`` are calibration values).
@@ -232,7 +236,7 @@ class ProbeTable:
         Args:
             speed_of: ``speed_of(p_vel, p_height)``: the root speed (m/s) of the motion blended at those
                 parameters, e.g. measured by playing it.
-            n: probes per axis (the spec uses 21).
+            n: probes per axis (perfcap's default 21; the thesis asks only for a dense enough grid).
             q: IDW power.
 
         Returns:

@@ -1,4 +1,5 @@
-"""``PuppetRetargeter``: a phone's motion in, a character's pose out (Ciccone 2019 ch. 6, PuppetPhone).
+"""``PuppetRetargeter``: a phone's motion in, a character's pose out (Ciccone 2019, *Intuitive Control of
+Animated Scenes*, ETH Diss. 25792, chapter 6, PuppetPhone).
 
 Each input frame (time, phone position if known, phone orientation, touch) goes through:
 
@@ -47,7 +48,7 @@ if TYPE_CHECKING:
     from retarget._types import FloatArray
     from retarget.mapping import BlendQuery
 
-#: Adverb points of the locomotion clips in blend space (p_vel, p_height), spec §3.3 / Fig. 6.3.
+#: Adverb points of the locomotion clips in blend space (p_vel, p_height): Ciccone 2019, section 6.2.3, Fig. 6.3.
 LOCOMOTION_POINTS: dict[str, tuple[float, float]] = {
     "idle": (0.0, 1.0), "walk": (0.5, 1.0), "run": (1.0, 1.0), "crouch_idle": (0.0, 0.0), "crouch_walk": (1.0, 0.0),
 }
@@ -324,9 +325,9 @@ class PuppetRetargeter:
         return np.array([self.position[0], float(pos[1]), self.position[2]]), rot, p, 1.0
 
     def _jump_clip_time(self, t: float, end: FloatArray, clip: Clip) -> float:
-        """Where the mid-jump clip is: the fitted parabola's apex drives it (spec 3.4), the clip's middle
-        key-time (the tuck) at the apex, its end at the height the jump started from; by time since takeoff
-        while the fit has no apex yet."""
+        """Where the mid-jump clip is: the fitted parabola's apex drives it (Ciccone 2019, section 6.3), the
+        clip's middle key-time (the tuck) at the apex, its end at the height the jump started from; by time
+        since takeoff while the fit has no apex yet."""
         jump = self.machine.jump
         arc = jump.arc if jump is not None else None
         apex_key = clip.key_times[1] if len(clip.key_times) > 2 else 0.5 * clip.duration

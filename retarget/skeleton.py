@@ -547,7 +547,7 @@ def humanoid(height: float = _REF_HEIGHT) -> Skeleton:
 
 
 def bezier_control(p_pelvis: FloatArray, p_chest: FloatArray, p_up: FloatArray, b: float = 0.3) -> FloatArray:
-    """The middle control point of the spine curve (spec eq. 6.4).
+    """The middle control point of the spine curve (Ciccone 2019, section 6.3, eq. 6.4; the thesis uses b = 0.3).
 
     ``p1 = (p_pelvis + (1 - b) p_chest + b p_up) / 2``; with the chest upright (``p_chest == p_up``) it is
     the midpoint and the spine is straight.
@@ -575,7 +575,7 @@ def bezier_control(p_pelvis: FloatArray, p_chest: FloatArray, p_up: FloatArray, 
 
 def bezier_spine(p_pelvis: FloatArray, p_chest: FloatArray, p_up: FloatArray, s: FloatArray | float, *,
                  b: float = 0.3) -> FloatArray:
-    """Points on the quadratic Bezier spine from pelvis to chest (variable bone lengths, spec 3.5).
+    """Points on the quadratic Bezier spine from pelvis to chest (variable bone lengths, Ciccone 2019, section 6.3).
 
     ``B(s) = (1-s)^2 P0 + 2 s (1-s) P1 + s^2 P2`` with ``P1 = bezier_control(...)``.
 

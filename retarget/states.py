@@ -1,13 +1,16 @@
 """The puppet's states, the events that move it between them, and the transition table.
 
-This module owns *what* the phone puppet can be doing (spec ``cycles-and-puppet.md`` section 3.2, our
-reconstruction of the thesis's missing Fig. 6.6) and nothing about *when*: ``PuppetState``, ``PuppetEvent``,
-the one table ``TRANSITIONS`` that says which event moves which state where, and the animation actions
-each state asks for on entry and exit (``ENTRY_ACTIONS``, ``EXIT_ACTIONS``, ``EVENT_ACTIONS``). Deriving
-events from the phone input (thresholds, hysteresis, timers) is ``retarget.machine``'s job; applying the
-actions (blend space, ragdoll, IK) is the retargeter's.
+This module owns *what* the phone puppet can be doing and nothing about *when*: ``PuppetState``,
+``PuppetEvent``, the one table ``TRANSITIONS`` that says which event moves which state where, and the
+animation actions each state asks for on entry and exit (``ENTRY_ACTIONS``, ``EXIT_ACTIONS``,
+``EVENT_ACTIONS``). Deriving events from the phone input (thresholds, hysteresis, timers) is
+``retarget.machine``'s job; applying the actions (blend space, ragdoll, IK) is the retargeter's.
 
-The table, in the spec's words:
+The states follow Ciccone 2019, *Intuitive Control of Animated Scenes* (ETH Diss. 25792), chapter 6
+(PuppetPhone): section 6.2.2 (a state machine with a ragdoll as the default state for input no animation
+fits) and section 6.3 (the clips of the prototype, the jump with its anticipation and landing crouch).
+The thesis draws its state machine only as a figure (Fig. 6.6) and names few of its events, so the table
+below is perfcap's reconstruction; ``docs/design/puppet.md`` says what comes from where:
 
 * ``LOCOMOTION`` (5-clip blend space): lift fast -> ``JUMP_ANTICIPATION``; held above the ground with no
   jump -> ``RAGDOLL``; object nearby while crouched -> ``INTERACT``; touch-up -> ``RELEASED``.

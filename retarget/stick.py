@@ -1,13 +1,15 @@
 """The MotionStick: an invisible stick from the phone to the grabbed object.
 
-This module owns the spec's section 3.1 (Ciccone 2019, L1135-1142): on grab the object's pose relative to
-the phone, ``X_rel = X_phone^-1 X_obj``, and the stick length ``L0 = |X_rel.t|`` are kept; every frame the
-target is ``X_phone X_rel``, so the object keeps its distance and rotation relative to the phone. Collisions
-relax this: the stick is ray-cast from the phone towards the object against the ground plane (and any extra
-planes), and its length becomes ``L = min(L0, hit distance - clearance)``, so an object pushed into the
-floor stops on it, along the same direction, and the stick returns to ``L0`` once clear. In grounded states
-only the yaw of the target rotation is applied (the character stays upright); the full 6-DoF target is
-always returned too (the ragdoll uses it as a spring on the held body).
+This module owns the MotionStick of Ciccone 2019, *Intuitive Control of Animated Scenes* (ETH Diss.
+25792), section 6.2.1: a grabbed object keeps its distance and rotation relative to the phone, and the
+stick shortens rather than let the object pass through the floor. How, is perfcap's
+(``docs/design/puppet.md``): on grab the object's pose relative to the phone, ``X_rel = X_phone^-1 X_obj``,
+and the stick length ``L0 = |X_rel.t|`` are kept; every frame the target is ``X_phone X_rel``. For
+collisions the stick is ray-cast from the phone towards the object against the ground plane (and any
+extra planes), and its length becomes ``L = min(L0, hit distance - clearance)``, so an object pushed into
+the floor stops on it, along the same direction, and the stick returns to ``L0`` once clear. In grounded
+states only the yaw of the target rotation is applied (the character stays upright); the full 6-DoF
+target is always returned too (the ragdoll uses it as a spring on the held body).
 
 Poses are 4x4 rigid transforms (numpy, metres), rotation in the upper-left 3x3 and translation in the last
 column. Y is up; the heading ``theta`` turns +Z to ``(sin theta, 0, cos theta)``. Quaternions are
@@ -228,7 +230,7 @@ class MotionStick:
         planes: extra collision planes (walls, tables), each with its normal towards the free side.
         clearance: how far the object's origin sits above its lowest point, metres (0 for a character whose
             root is between its feet). The stick stops when the object's lowest point touches a plane: the
-            ray is cast against each plane moved out by ``clearance`` along its normal, which is the spec's
+            ray is cast against each plane moved out by ``clearance`` along its normal, which is
             ``hit distance - clearance`` measured along the normal, so it stays exact for oblique sticks.
 
     Raises:

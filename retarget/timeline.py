@@ -1,19 +1,22 @@
-"""Time and root bookkeeping for verbs and adverbs (Rose 1999, ch. 3): key-times and canonical time
-(eq 3.1/3.2), the lazy motion operators that only touch time or the root (affine, time-warp with a
-bisection inverse, excerpt, cyclification, concatenation), the sigmoid blend, root reorientation and
-repositioning (Alg 3.1/3.2) and headings about the character's up axis (quaternion maths is
-:mod:`capture.quat`).
+"""Time and root bookkeeping for verbs and adverbs (Rose 1999, *Verbs and Adverbs*, Princeton PhD thesis,
+chapter 3): key-times and canonical time (section 3.4, eq. 3.1/3.2), the lazy motion operators of sections
+3.9-3.10 that only touch time or the root (affine, time-warp with a bisection inverse, excerpt,
+cyclification, concatenation; Definitions 2-4, 7 and 9), the sigmoid blend (section 5.5), root
+reorientation and repositioning (section 3.5, Algorithms 3.1/3.2) and headings about the character's up
+axis (quaternion maths is :mod:`capture.quat`).
 
 Conventions: seconds, metres, radians; Y is up; heading theta sends +Z to (sin theta, cos theta), so
 ``R_y(a)`` maps a horizontal displacement (dX, dZ) to (cos a dX + sin a dZ, -sin a dX + cos a dZ).
-Quaternions are (w, x, y, z). Scalar-DOF motions (``Motion``) keep the source's root layout when
+Quaternions are (w, x, y, z). Scalar-DOF motions (``Motion``) keep the thesis's root layout when
 ``root_dofs`` is true: channels 0, 1, 2 are the X, Y, Z translation and channel 3 the heading (the root's
 Y rotation); every other channel is a scalar DOF.
 
-The spec's defects are fixed as it says: the affine operator's tau(T) = tau_s + T; the time-warp's
-key-times are K = w^-1(K') (bisection) and t(T) = t'(w(T)); cyclification subtracts the ramp
-(T/T^d - 1/2) d, which closes the seam; repositioning rotates by a = dY^r (so a zero target reproduces
-Alg 3.1); a concatenation evaluates its active constituent at its local time.
+Five formulas of the thesis are used as perfcap corrects them (``docs/design/verbs-and-adverbs.md`` gives
+the reasons): the affine operator's tau(T) = tau_s + T (Definition 3); the time-warp's key-times
+K = w^-1(K') (bisection) and t(T) = t'(w(T)) (Definition 4); cyclification subtracts the ramp
+(T/T^d - 1/2) d, which closes the seam (Definition 9); repositioning rotates by a = dY^r, so a zero target
+reproduces Algorithm 3.1 (Algorithm 3.2); a concatenation evaluates its active constituent at its local
+time (Definition 7).
 """
 
 from __future__ import annotations
@@ -266,7 +269,8 @@ def reposition(
     heading: FloatArray,
     start: tuple[float, float | None, float, float],
 ) -> tuple[FloatArray, FloatArray]:
-    """Move a root trajectory so that it starts at ``start`` (Alg 3.2, with a = dY^r).
+    """Move a root trajectory so that it starts at ``start`` (Rose 1999, Alg 3.2, with a = dY^r: perfcap's
+    correction of the thesis's a = -dY^r, which contradicts Alg 3.1).
 
     With dY^r = H_0' - H_0: X' = cos(a) dX + sin(a) dZ + X_0', Z' = -sin(a) dX + cos(a) dZ + Z_0',
     heading' = heading + dY^r, Y' = Y + (Y_0' - Y_0), where a = dY^r and (dX, dZ) are measured from
@@ -444,7 +448,8 @@ class SampledMotion(Motion):
 
 class Affine(Motion):
     """Affine time scale {tau_s, s, M'}: T^d = s T'^d, K = s K', theta(T) = theta'(T / s),
-    tau(T) = tau_s + T (the spec's fix of L1232).
+    tau(T) = tau_s + T (Rose 1999, Definition 3, with perfcap's correction of tau(T); the thesis scales T
+    a second time).
 
     Args:
         motion: M'.
@@ -557,7 +562,7 @@ class TimeWarp(Motion):
         return self.inner.theta(self.w(T))
 
     def t(self, T: float | FloatArray) -> float | FloatArray:
-        """Canonical time t(T) = t'(w(T)) (the spec's fix); it sends K_m to (m-1)/(N-1)."""
+        """Canonical time t(T) = t'(w(T)) (perfcap's correction of Definition 4); it sends K_m to (m-1)/(N-1)."""
         out = self.inner.t(self.w(T))
         return float(out) if np.ndim(T) == 0 else out
 
@@ -568,7 +573,7 @@ class TimeWarp(Motion):
 
 
 class Excerpt(Motion):
-    """A part [T_s, T_e] of M' (the source's Clip operator, given here in M''s verb time).
+    """A part [T_s, T_e] of M' (Rose 1999's clip operator, Definition 2, given here in M''s verb time).
 
     T^d = T_e - T_s, theta(T) = theta'(T + T_s); the key-times inside the interval shift by -T_s and
     the ones outside are dropped.
@@ -623,7 +628,8 @@ def _default_cycle_mask(motion: Motion) -> BoolArray:
 
 class Cyclify(Motion):
     """Cyclification (Def 9): theta_j(T) = theta'_j(T) - (T / T^d - 1/2) d_j for the selected DOFs,
-    d_j = theta'_j(T^d) - theta'_j(0), so theta_j(0) = theta_j(T^d) (the spec's corrected sign).
+    d_j = theta'_j(T^d) - theta'_j(0), so theta_j(0) = theta_j(T^d) (Rose 1999, section 3.10, with perfcap's
+    correction of the ramp's sign: the thesis's sign doubles the gap at the seam).
 
     The velocity becomes theta'_j-dot - d_j / T^d. Root X, Z and heading are never cyclified.
 
@@ -767,7 +773,8 @@ class Concatenation(Motion):
     """Concatenation {M_0..M_n}: one after the other, T^d = sum of the durations.
 
     The active constituent is the last n with sum_{c<n} T^d_c <= T, evaluated at its local time
-    T - sum_{c<n} T^d_c (the spec's fix). Each start is lined up with the previous end by Alg 3.2 in X,
+    T - sum_{c<n} T^d_c (Rose 1999, Definition 7, whose theta_c(T - T_elapsed) subtracts the local time
+    instead: perfcap's correction). Each start is lined up with the previous end by Alg 3.2 in X,
     Z and heading (dY^t = 0); the other DOFs are not smoothed. Key-times shift by the accumulated
     duration.
 

@@ -1,11 +1,12 @@
-"""The verb graph (Rose 1999, ch. 5): transitions between verbs and the per-actor queue that plays them.
+"""The verb graph (Rose 1999, *Verbs and Adverbs*, Princeton PhD thesis, chapter 5): transitions between
+verbs and the per-actor queue that plays them.
 
-This module owns ``Transition`` (Def 10: a blend function, a region of verb A and a region of verb B in
+This module owns ``Transition`` (section 5.5, Def 10: a blend function, a region of verb A and a region of verb B in
 canonical time), ``BlendedTransition`` (a transition evaluated under fixed adverbs: duration T^d = mean of
 the two region durations; non-root DOFs blended by slerp with alpha(t); the root from the blended
 heading-relative velocities and turn rates, integrated once on a fixed grid, so the path does not swing;
-usage from A while t <= 0.5 and from B after), and ``VerbGraph`` with its ``Actor`` state (Eq 5.3) and
-UpdateQueue / PositionDOFs / UpdateVerbGraph (Alg 5.1-5.3).
+usage from A while t <= 0.5 and from B after), and ``VerbGraph`` with its ``Actor`` state (section 5.2,
+Eq 5.3) and UpdateQueue / PositionDOFs / UpdateVerbGraph (Alg 5.1-5.3).
 
 The root (X, Z, heading) only ever moves by deltas evaluated under the current adverbs, rotated into the
 world by the item's Alg 3.2 angle, so changing p never makes the root jump or backtrack, and stepping a
