@@ -62,8 +62,8 @@ class AhrsBackend(Backend):
 
     def run(self, steps: Steps, out: StepOutputs) -> None:
         to_enu = self.to_enu
-        gyro, acc, mag, use_mag, mode, dt = steps.gyro, steps.acc, steps.mag, steps.use_mag, steps.mode, steps.dt
-        q_out, flags = out.q, out.flags
+        dt, gyro, acc, mag, use_mag, mode, q_before = steps
+        q_out, flags, acc_err, mag_err = out
         gz = ~gyro.any(axis=1)
         if gz.any():
             gyro = gyro.copy()
@@ -73,11 +73,11 @@ class AhrsBackend(Backend):
         if tol > 0:
             # no acceleration rejection in these filters: skip the accelerometer when |a| is not g
             acc_ok &= np.abs(np.linalg.norm(acc, axis=1) * (1.0 / G0) - 1.0) <= tol
-        out.acc_error_deg[:] = np.nan
-        out.mag_error_deg[:] = np.nan
+        acc_err[:] = np.nan
+        mag_err[:] = np.nan
         for i in range(dt.shape[0]):
             if mode[i]:
-                q_out[i] = self.restart(steps, i, q_out[i - 1].copy() if i else steps.q_before)
+                q_out[i] = self.restart(steps, i, q_out[i - 1].copy() if i else q_before)
                 continue
             q, f = self.step(self.q, gyro[i], acc[i] if acc_ok[i] else None, mag[i] if use_mag[i] else None,
                              float(dt[i]))

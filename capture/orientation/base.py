@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -19,6 +19,10 @@ from capture.quat import quat_conj, quat_mul
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
+
+#: One vector (x, y, z) and one quaternion (w, x, y, z) as plain floats (the one-sample path).
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
 
 #: Per-sample flags (bit mask, ``OrientationResult.flags``).
 FLAG_INIT = 1 << 0          # (re-)initialised from the accelerometer/magnetometer on this sample
@@ -138,9 +142,9 @@ def reinitialised(q_prev: np.ndarray, acc: np.ndarray, mag: np.ndarray | None) -
     return initial_orientation(acc, mag, heading)
 
 
-@dataclass(frozen=True, slots=True)
-class Steps:
-    """The samples of one batch, prepared for a backend's per-sample loop.
+class Steps(NamedTuple):
+    """The samples of one batch, prepared for a backend's per-sample loop (a tuple: made once per
+    batch, cheaply).
 
     Attributes:
         dt: (n,) time step of each sample, s (meaningful where ``mode`` is ``MODE_RUN``).
@@ -161,8 +165,7 @@ class Steps:
     q_before: np.ndarray
 
 
-@dataclass(frozen=True, slots=True)
-class StepOutputs:
+class StepOutputs(NamedTuple):
     """The buffers a backend's loop fills, one row per sample of :class:`Steps`.
 
     Attributes:

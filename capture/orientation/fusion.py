@@ -1,7 +1,8 @@
 """The x-io Fusion backend (the ``imufusion`` library): :class:`FusionBackend` runs imufusion's
 ``Ahrs`` in the ENU convention, optionally with its ``Bias`` gyro-offset learner, with acceleration
-and magnetic rejection and a rejection-free grace after every (re)initialisation; it has a batch
-loop and a one-sample path for single ``Sample`` items."""
+and magnetic rejection and a rejection-free grace after every (re)initialisation, over a batch of
+prepared samples (the one-sample path on plain floats is
+:meth:`capture.orientation.filter.OrientationFilter.update_one`)."""
 
 from __future__ import annotations
 
@@ -24,12 +25,8 @@ from capture.orientation.base import (
 if TYPE_CHECKING:
     from capture.orientation.base import StepOutputs, Steps
 
-Vec3 = tuple[float, float, float]
-Quat = tuple[float, float, float, float]
-
 _R2D = 180.0 / math.pi
 _INV_G0 = 1.0 / G0
-_ZERO3 = np.zeros(3)
 
 
 class FusionBackend(Backend):
@@ -115,27 +112,28 @@ class FusionBackend(Backend):
         gets = ahrs.get_internal_states
         getf = ahrs.get_flags
         off = self.offset.update if self.offset is not None else None
-        gd = steps.gyro * _R2D
-        ag = steps.acc * _INV_G0
+        dt, gyro, acc, mag, use_mag, mode, q_before = steps
+        gd = gyro * _R2D
+        ag = acc * _INV_G0
         acc_ok = cast("np.ndarray", np.isfinite(ag).all(axis=1))  # (n, 3) in: an array, never numpy's scalar
         ag[~acc_ok] = 0.0  # Fusion ignores a zero accelerometer: gyro-only update
         nan = math.nan
-        n = steps.dt.shape[0]
+        n = dt.shape[0]
         # plain lists and row views made once: the per-sample loop then does no numpy indexing
-        modes = steps.mode.tolist()
-        dts = steps.dt.tolist()
+        modes = mode.tolist()
+        dts = dt.tolist()
         oks = acc_ok.tolist()
-        ums = steps.use_mag.tolist()
+        ums = use_mag.tolist()
         g_rows = list(gd)
         a_rows = list(ag)
-        m_rows: list[np.ndarray] = list(steps.mag) if any(ums) else []
+        m_rows: list[np.ndarray] = list(mag) if any(ums) else []
         qs: list[Any] = [None] * n
         ae = [nan] * n
         me = [nan] * n
         fs = [0] * n
         for i in range(n):
             if modes[i]:
-                qs[i] = self.restart(steps, i, np.array(qs[i - 1], np.float64) if i else steps.q_before)
+                qs[i] = self.restart(steps, i, np.array(qs[i - 1], np.float64) if i else q_before)
                 continue
             g = g_rows[i]
             if off is not None:
@@ -165,33 +163,8 @@ class FusionBackend(Backend):
             if fl.overrange_recovery:
                 f |= FLAG_OVERRANGE
             fs[i] = f
-        out.q[:] = qs
-        out.acc_error_deg[:] = ae
-        out.mag_error_deg[:] = me
-        flags = out.flags
+        q_out, flags, acc_err, mag_err = out
+        q_out[:] = qs
+        acc_err[:] = ae
+        mag_err[:] = me
         flags |= np.array(fs, np.uint16)
-
-    def update_one(self, dt: float, gyro: Vec3, acc: Vec3) -> tuple[Quat, int]:
-        """One integrated sample without a magnetometer or offset learner, on plain floats: the
-        arithmetic of :meth:`run` for that sample (bit for bit). Returns the quaternion (sensor ->
-        ENU) and the flags."""
-        gx, gy, gz = gyro
-        ax, ay, az = acc
-        acc_ok = math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az)
-        ahrs = self.ahrs
-        ahrs.set_sample_period(dt)
-        ahrs.update_no_magnetometer(np.array((gx * _R2D, gy * _R2D, gz * _R2D)),
-                                    np.array((ax * _INV_G0, ay * _INV_G0, az * _INV_G0)) if acc_ok else _ZERO3)
-        if self.grace_left > 0:
-            self.tick(dt)
-        w, x, y, z = ahrs.get_quaternion().tolist()
-        st = ahrs.get_internal_states()
-        fl = ahrs.get_flags()
-        f = 0
-        if st.accelerometer_ignored or not acc_ok:
-            f |= FLAG_ACC_IGNORED
-        if fl.acceleration_recovery:
-            f |= FLAG_ACC_RECOVERY
-        if fl.overrange_recovery:
-            f |= FLAG_OVERRANGE
-        return (w, x, y, z), f
