@@ -1,5 +1,6 @@
-"""Inputs a review found hard: sines whose period is not a whole number of samples, fast sensors,
-mouse-style event streams, spiky input, long jittered takes, a performer who changes tempo."""
+"""Inputs ``cycles.extract`` must handle: sines whose period is not a whole number of samples (also
+quantised), a 1 kHz sensor, a mouse that reports only changes, spiky noise (one clean error), and long
+takes of many jittered loops."""
 
 from __future__ import annotations
 
@@ -7,8 +8,7 @@ import numpy as np
 import pytest
 
 from capture.errors import NoPeriodFoundError
-from capture.sample import Sample
-from cycles import CycleExtractor, extract
+from cycles import extract
 from sim_devices.loops import jittered_loops
 
 
@@ -57,18 +57,3 @@ def test_many_contiguous_loops_give_the_mean_loop() -> None:
         tk = jittered_loops(11, channels=3, noise=0.03, seed=seed)
         errs.append(abs(extract(tk.t, tk.values).period_s / tk.period_s - 1))
     assert max(errs) < 0.005, errs
-
-
-def test_streaming_follows_a_change_of_tempo() -> None:
-    # 1.0 s loops for 40 s, then 1.3 s loops: with a 15 s window the best cycle follows
-    t = np.arange(0, 70.0, 1 / 100)
-    ph = np.where(t < 40, t / 1.0, 40 + (t - 40) / 1.3)
-    x = np.stack([np.sin(2 * np.pi * ph), np.cos(4 * np.pi * ph)], 1)
-    ex = CycleExtractor("s", window_s=15.0, every_s=1.0)
-    for i, (ti, xi) in enumerate(zip(t, x, strict=True)):
-        ex.update(Sample("s", i, int(ti * 1e9), None, int(ti * 1e9), tuple(xi)))
-        if abs(ti - 39.0) < 0.005:
-            assert ex.best is not None and abs(ex.best.period_s - 1.0) < 0.02
-    assert ex.best is not None and abs(ex.best.period_s - 1.3) < 0.03
-    # extractions ran every 1 s of data, not per sample
-    assert 60 <= ex.attempts <= 72
