@@ -46,8 +46,8 @@ def test_acf_resamples_irregular_stamps():
     assert abs(est / take.period_s - 1) < 0.04
 
 
-def test_acf_on_the_spec_harmonic_take_is_not_half():
-    # spec §4 test 4: one channel per harmonic 1, 2, 3. The summed spectrum still peaks at the loop.
+def test_acf_on_one_harmonic_per_channel_is_not_half():
+    # one channel per harmonic 1, 2, 3 of the loop: the summed spectrum still peaks at the loop.
     for seed in range(5):
         take = jittered_loops(4, channels=3, harmonics=3, per_channel_harmonic=True, noise=0.02, seed=seed)
         est = cb.acf_period(take.t, take.values)

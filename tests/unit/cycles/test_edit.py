@@ -1,8 +1,10 @@
 """Tests for ``cycles.edit``: MoCurve spatial edits, temporal re-timing and planar contacts.
 
-Spec ``cycles-and-puppet.md`` section 2 and its testable behaviours 14-17, plus wrap-around, closure,
-argument checks, a synthetic walk with a stance on each foot, and one real stride of the gaitmap
-optical-marker walk (``../shared/traces/d_mocap_cyclic/gaitmap_walk/``, read in place).
+Ciccone 2019, section 5.4 (eq. 5.6, 5.7-5.11 and 5.12) as perfcap implements it
+(docs/design/cycles.md): the falloff weights, re-timing with and without (contradictory) constraints,
+contacts that stop sliding, plus wrap-around, closure, argument checks, a synthetic walk with a stance
+on each foot, and one real stride of the gaitmap optical-marker walk
+(``../shared/traces/d_mocap_cyclic/gaitmap_walk/``, read in place).
 """
 
 from __future__ import annotations

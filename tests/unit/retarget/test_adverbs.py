@@ -67,7 +67,7 @@ def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
 
 
-# -- 13. counts ------------------------------------------------------------------------------------
+# -- counts ------------------------------------------------------------------------------------
 
 
 def test_storage_counts() -> None:
@@ -77,7 +77,7 @@ def test_storage_counts() -> None:
     assert mrbf_storage(44, 32, 4, 20, 4) / example_storage(44, 32, 20) == pytest.approx(2.26, abs=0.005)
 
 
-# -- 12. verbs ------------------------------------------------------------------------------------
+# -- verbs ------------------------------------------------------------------------------------
 
 
 def test_verb_needs_d_plus_1_examples() -> None:

@@ -1,4 +1,5 @@
-"""Jump parabola and invalid-jump rules (spec cycles-and-puppet 3.4; section 4 items 23 and 24)."""
+"""Jump parabola and invalid-jump rules (Ciccone 2019, section 6.3, eq. 6.3 as perfcap corrects it; see
+docs/design/puppet.md)."""
 
 from __future__ import annotations
 
@@ -46,9 +47,9 @@ def test_parabola_interpolates_its_constraints():
         assert p(x0) == pytest.approx(y0, abs=1e-7)
         assert p(xt) == pytest.approx(yt, abs=1e-7)
         assert p.slope(xt) == pytest.approx(s, abs=1e-7)
-        # The spec's expanded c agrees with c = y0 - a x0^2 - b x0.
-        c_spec = (xt**2 * y0 + x0**2 * yt - 2 * x0 * xt * yt + s * x0 * xt * (xt - x0)) / (xt - x0) ** 2
-        assert p.c == pytest.approx(c_spec, abs=1e-7)
+        # c = y0 - a x0^2 - b x0 expanded over the common denominator
+        c_expanded = (xt**2 * y0 + x0**2 * yt - 2 * x0 * xt * yt + s * x0 * xt * (xt - x0)) / (xt - x0) ** 2
+        assert p.c == pytest.approx(c_expanded, abs=1e-7)
 
 
 def test_apex_only_for_downward_parabolas_and_degenerate_fit():

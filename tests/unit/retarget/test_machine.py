@@ -1,4 +1,5 @@
-"""Puppet state table and state machine (spec cycles-and-puppet 3.2 and 3.4; section 4 items 24 and 25).
+"""Puppet state table and state machine (Ciccone 2019, sections 6.2.2 and 6.3; the table is perfcap's
+reconstruction, docs/design/puppet.md).
 
 The ``Script`` helper below generates stick-end trajectories (hold still, walk, run, crouch, jumps, hovers,
 releases) frame by frame with their exact velocities, and turns them into ``PuppetContext`` frames; the
@@ -234,7 +235,7 @@ def test_table_is_complete_and_every_state_can_be_left():
         assert state in ENTRY_ACTIONS and state in EXIT_ACTIONS
     targets = set(TRANSITIONS.values())
     assert targets == set(S)  # every state is reachable
-    # The spec's rows.
+    # The rows of docs/design/puppet.md's table.
     assert TRANSITIONS[(S.LOCOMOTION, E.JUMP_TRIGGER)] is S.JUMP_ANTICIPATION
     assert TRANSITIONS[(S.LOCOMOTION, E.UNSUPPORTED)] is S.RAGDOLL
     assert TRANSITIONS[(S.JUMP_ANTICIPATION, E.TAKEOFF)] is S.AIRBORNE

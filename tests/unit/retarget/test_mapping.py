@@ -1,4 +1,6 @@
-"""Mappings from phone input to blend parameters (spec cycles-and-puppet 3.3; section 4 items 20-22)."""
+"""Mappings from phone input to blend parameters (Ciccone 2019, section 6.2.3, eq. 6.1-6.2; docs/design/puppet.md):
+the linear axis map, IDW exact hits and equidistant probes, the probe table's round trip and the out-of-range
+speed-up."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from scipy.spatial import Delaunay
 
 from retarget.mapping import AxisMap, OneEuroFilter, ProbeTable, PuppetMapping, idw
 
-# The spec's mock clips (3.3 [proto]): blend-space points (p_vel, p_height), speeds and durations.
+# Mock clips at the blend-space points of Fig. 6.3 (p_vel, p_height), with made-up speeds and durations.
 CLIP_POINTS = np.array([[0.0, 1.0], [0.5, 1.0], [1.0, 1.0], [0.0, 0.0], [1.0, 0.0]])  # idle walk run cidle cwalk
 CLIP_SPEEDS = np.array([0.0, 1.4, 3.5, 0.0, 0.8])
 CLIP_DURATIONS = np.array([2.0, 1.0, 0.7, 2.0, 1.2])

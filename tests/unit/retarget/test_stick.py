@@ -1,4 +1,5 @@
-"""MotionStick (spec cycles-and-puppet 3.1; section 4 items 18 and 19)."""
+"""MotionStick (Ciccone 2019, section 6.2.1; docs/design/puppet.md): the grabbed object keeps its distance and
+rotation relative to the phone, and the stick shortens against the floor and grows back."""
 
 from __future__ import annotations
 

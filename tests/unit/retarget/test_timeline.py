@@ -1,5 +1,5 @@
 """Key-times, canonical time, the time operators, cyclification, concatenation and root repositioning
-(verbs-and-adverbs spec section 6, items 1-4, 6 and 7)."""
+(Rose 1999, chapter 3, with perfcap's corrections; docs/design/verbs-and-adverbs.md)."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def ramp_motion(duration: float = 1.0, key_times: list[float] | None = None, n: 
     return SampledMotion(T, vals, key_times)
 
 
-# -- 1. key-times ---------------------------------------------------------------------------------
+# -- key-times ---------------------------------------------------------------------------------
 
 
 def test_key_times_eq_3_1_and_3_2() -> None:
@@ -65,7 +65,7 @@ def test_key_times_rejected(bad: list[float]) -> None:
         canonical_time(0.5, bad)
 
 
-# -- 2. reorient / reposition ---------------------------------------------------------------------
+# -- reorient / reposition ---------------------------------------------------------------------
 
 
 def test_reorient_example() -> None:
@@ -110,7 +110,7 @@ def test_split_heading_round_trip() -> None:
     np.testing.assert_allclose(quat_exp(quat_log(q)) * np.sign(q[:, :1]), q, atol=1e-12)
 
 
-# -- 3. affine ------------------------------------------------------------------------------------
+# -- affine ------------------------------------------------------------------------------------
 
 
 def test_affine() -> None:
@@ -126,7 +126,7 @@ def test_affine() -> None:
         Affine(m, 0.0)
 
 
-# -- 4. time-warp and blend functions -------------------------------------------------------------
+# -- time-warp and blend functions -------------------------------------------------------------
 
 
 def test_sine_warp_and_sigmoid() -> None:
@@ -160,7 +160,7 @@ def test_time_warp_key_times_and_values() -> None:
         TimeWarp(m, lambda t: 0.5 * t)
 
 
-# -- 6. cyclification -----------------------------------------------------------------------------
+# -- cyclification -----------------------------------------------------------------------------
 
 
 def test_cyclify_ramp_becomes_constant() -> None:
@@ -229,7 +229,7 @@ def test_find_cycle_and_cyclify_real_walk() -> None:
     assert 0.8 < cyc.duration < 1.6
 
 
-# -- 7. concatenation -----------------------------------------------------------------------------
+# -- concatenation -----------------------------------------------------------------------------
 
 
 def test_concatenation() -> None:

@@ -1,4 +1,6 @@
-"""Transitions and the verb graph (verbs-and-adverbs spec section 6, items 14-16)."""
+"""Transitions and the verb graph (Rose 1999, sections 5.2 and 5.5; docs/design/verbs-and-adverbs.md):
+duration and end poses, the sigmoid blend, a root that does not swing, eq. 5.2, step-size independence,
+adverb changes that never move the root backwards, design-time checks."""
 
 from __future__ import annotations
 
@@ -66,7 +68,7 @@ def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
 
 
-# -- 14. transitions --------------------------------------------------------------------------------
+# -- transitions --------------------------------------------------------------------------------
 
 
 def test_transition_duration_and_end_poses() -> None:
@@ -134,7 +136,7 @@ def test_root_blended_through_a_turn_does_not_swing() -> None:
     assert dx.max() > 1e-4 and dx.min() < -1e-4  # out to the side, then back
 
 
-# -- 15. verb-graph timing --------------------------------------------------------------------------
+# -- verb-graph timing --------------------------------------------------------------------------
 
 
 def test_tau_out_eq_5_2() -> None:
@@ -185,7 +187,7 @@ def test_motion_is_continuous_across_items() -> None:
     assert {"walk->idle", "idle"} <= set(g.actors["x"].history)
 
 
-# -- 16. changing p ---------------------------------------------------------------------------------
+# -- changing p ---------------------------------------------------------------------------------
 
 
 def test_changing_adverbs_never_moves_the_root_backwards() -> None:
