@@ -40,7 +40,7 @@ from capture.sample import (
 )
 from devices.codecs.base import Codec
 from devices.options import Option, resolve_options
-from devices.transports.base import Transport
+from devices.transports.base import BatchSource, Transport
 
 log = logging.getLogger(__name__)
 RECV_LOGGING_LEVEL = 9  # per-sample logging, below DEBUG
@@ -102,6 +102,9 @@ class Device(abc.ABC):
                  clock: Clock = MONOTONIC, strict: bool = False) -> None:
         self.name = name
         self.transport = transport
+        #: the transport as a ``BatchSource`` when it is one (checked once: ``isinstance`` on a
+        #: protocol costs microseconds, too much for every poll)
+        self._batch_source: BatchSource | None = transport if isinstance(transport, BatchSource) else None
         self.clock = clock
         self.strict = strict
         self.opts = resolve_options(self.options, options or {}, f"device {name} ({self.kind})",
@@ -183,16 +186,17 @@ class Device(abc.ABC):
     def poll(self, timeout: float) -> list[Any]:
         """Read from the transport and return the bus items it yields (raw chunks first, then
         samples, events and clock states). Transports that can hand over many chunks at once
-        (an as-fast-as-possible replay) are read in batches and decoded with ``process_chunks``.
+        (a ``BatchSource`` whose ``batches`` is on: an as-fast-as-possible replay) are read in
+        batches and decoded with ``process_chunks``.
 
         Raises:
             DeviceIOError: the transport failed.
             EndOfStream: a finite source ended.
             ProtocolError: only in strict mode.
         """
-        read_many = getattr(self.transport, "read_many", None)
-        if read_many is not None and getattr(self.transport, "batches", False):
-            chunks = read_many(timeout, 4096)
+        src = self._batch_source
+        if src is not None and src.batches:
+            chunks = src.read_many(timeout, 4096)
             return self.process_chunks(chunks) if len(chunks) else []
         chunk = self.transport.read(timeout)
         if chunk is None:

@@ -11,7 +11,9 @@ responders' ``handshake`` option).
     simhid:///path/to/capture.hid                  a hid-recorder capture, at its recorded timing
 
 Responder names map to ``(module, class)`` in ``RESPONDERS``; each module also holds the
-responder's motion synthesis, encoded through the real codecs' encoders.
+responder's motion synthesis, encoded through the real codecs' encoders. With ``truth=true`` the
+transport keeps when each report was really sent; that, the simulated latency and drift, and the
+responder's motion are its ``SimulatorTruth`` ability (``devices.transports.base``).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import collections
 import importlib
 import os
 from collections.abc import Iterator, Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -31,6 +33,10 @@ from capture.sample import Chunk, Direction
 from devices.options import Option, resolve_options
 from devices.transports.base import Transport
 from devices.transports.hid import HidTransportBase
+
+if TYPE_CHECKING:
+    from devices.transports.base import SimulatorTruth
+    from sim_devices.motion import WavingMotion
 
 #: responder name -> (module, class)
 RESPONDERS: dict[str, tuple[str, str]] = {
@@ -62,6 +68,8 @@ class HidResponder(abc.ABC):
     product: ClassVar[str] = ""
     #: responder-specific URL options
     options: ClassVar[dict[str, Option]] = {}
+    #: the motion the responder's reports carry, when it synthesises one
+    motion: WavingMotion | None = None
 
     def __init__(self, opts: Mapping[str, Any], address: str = "") -> None:
         self.opts = dict(opts)
@@ -118,7 +126,7 @@ def responder_class(name: str) -> type[HidResponder]:
 
 
 class SimHidTransport(Transport, HidTransportBase):
-    """A simulated HID device; see the module docstring."""
+    """A simulated HID device; see the module docstring. It is a ``SimulatorTruth``."""
 
     scheme = "simhid"
     usage = "simhid://NAME[?options] or simhid:///PATH.hid"
@@ -174,6 +182,22 @@ class SimHidTransport(Transport, HidTransportBase):
         self.sent = 0
         self.dropped = 0
         self._due: collections.deque[tuple[int, int, bytes]] = collections.deque()
+
+    # -- SimulatorTruth ------------------------------------------------------------------------------
+    @property
+    def latency_ns(self) -> int:
+        """The simulated fixed link latency (option ``latency_ms``), ns."""
+        return int(self.opts["latency_ms"] * 1e6)
+
+    @property
+    def drift_ppm(self) -> float:
+        """The simulated device clock drift (option ``drift_ppm``), ppm."""
+        return float(self.opts["drift_ppm"])
+
+    @property
+    def motion(self) -> WavingMotion | None:
+        """The responder's motion (a controller's waving), or ``None`` (a recorded capture)."""
+        return self.responder.motion
 
     # -- identity -------------------------------------------------------------------------------------
     def implied_kind(self) -> str | None:
@@ -353,6 +377,10 @@ class SimHidTransport(Transport, HidTransportBase):
 
     def stamp_tx(self, data: bytes) -> Chunk:
         return Chunk(bytes(data), self._now(), Direction.TX)
+
+
+if TYPE_CHECKING:  # the ability it declares, checked by mypy
+    _truth: type[SimulatorTruth] = SimHidTransport
 
 
 def trace_path(address: str) -> str:

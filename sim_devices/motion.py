@@ -119,17 +119,18 @@ class WavingMotion:
             rate = np.where(before, slope[0], rate)
         return phase, rate
 
-    def mean_loop_s(self, t0: float, t1: float) -> float:
-        """The mean loop duration over ``[t0, t1]`` (s): its length over the loops it spans, partial
-        loops counted by their phase (the period a cycle extractor should find there).
+    def mean_loop_s(self, d0: float, d1: float) -> float:
+        """The mean loop duration over motion seconds ``[d0, d1]`` (s): its length over the loops it
+        spans, partial loops counted by their phase (the period a cycle extractor should find there).
+        This is ``devices.transports.base.LoopingMotion``.
 
         Raises:
-            ValueError: the motion has no loops, or ``t1 <= t0``.
+            ValueError: the motion has no loops, or ``d1 <= d0``.
         """
-        if not t1 > t0:
-            raise ValueError("t1 must be after t0")
-        ph, _ = self.loop_phase(np.array([t0, t1]))
-        return float((t1 - t0) / (ph[1] - ph[0]))
+        if not d1 > d0:
+            raise ValueError("d1 must be after d0")
+        ph, _ = self.loop_phase(np.array([d0, d1]))
+        return float((d1 - d0) / (ph[1] - ph[0]))
 
     def _loop_angles(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
         phase, prate = self.loop_phase(t)

@@ -87,6 +87,7 @@ class _SwitchResponder(HidResponder):
     vid = 0x057E
     ctype: ClassVar[int] = sw.TYPE_PRO
     connection: ClassVar[int] = 0x0
+    motion: WavingMotion
     options: ClassVar[dict[str, Option]] = {
         "handshake": Option(str, "ok", "how the controller answers the handshake",
                             choices=("ok", "silent", "wrong", "wrong_spi", "nack", "blank_calibration")),

@@ -7,7 +7,9 @@ for CI). ``loop=true`` starts over, shifting times by the take's length so they 
 Writes during the device's handshake are compared with the recorded TX chunks.
 
 Several replayed devices share one timeline when given the same ``start_ns`` (host time at which
-the recording's ``t0_ns`` is played); ``capture.app.replay`` does this for whole sessions.
+the recording's ``t0_ns`` is played); ``capture.app.replay`` does this for whole sessions. The
+transport declares both abilities (``devices.transports.base``): it is a ``BatchSource`` (many
+chunks at once, by recorded time) and a ``RecordedTimeline`` (``set_timeline``, ``lateness_ns``).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections import deque
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +29,9 @@ from devices.options import Option
 from devices.transports.base import Transport
 from devices.transports.hid import HidTransportBase
 
+if TYPE_CHECKING:
+    from devices.transports.base import BatchSource, RecordedTimeline
+
 log = logging.getLogger(__name__)
 
 
@@ -36,6 +41,8 @@ class ReplayTransport(Transport, HidTransportBase):
     For a HID device it also answers the HID handshake calls from the recording: feature reports
     and the report descriptor from the device's descriptors (``hid.feature.XX``,
     ``hid.report_descriptor``), feature writes compared like output reports, and the bus it was on.
+
+    It is a ``BatchSource`` and a ``RecordedTimeline``.
     """
 
     scheme = "replay"
@@ -71,6 +78,7 @@ class ReplayTransport(Transport, HidTransportBase):
         self.tx_mismatches = 0
         self.opens = 0
         self._timeline: tuple[int, int] | None = None
+        #: how late each paced chunk was delivered after its deadline, ns (``RecordedTimeline``)
         self.lateness_ns: deque[int] = deque(maxlen=200_000)
 
     def set_timeline(self, start_ns: int, t0_ns: int = 0) -> None:
@@ -229,3 +237,8 @@ class ReplayTransport(Transport, HidTransportBase):
     @property
     def chunks_total(self) -> int:
         return 0 if self._chunks is None else len(self._rx)
+
+
+if TYPE_CHECKING:  # the abilities it declares, checked by mypy
+    _batches: type[BatchSource] = ReplayTransport
+    _timeline: type[RecordedTimeline] = ReplayTransport

@@ -159,6 +159,7 @@ class _SonyResponder(HidResponder):
     codec_cls: ClassVar[type[DualShock4Codec | DualSenseCodec]]
     tick_hz: ClassVar[float] = 0.0
     wrap: ClassVar[int] = 0
+    motion: WavingMotion
     options = {
         "handshake": Option(str, "ok", "how the pad answers the calibration read", choices=("ok", "silent", "wrong")),
         "calibration": Option(str, "factory", "factory calibration, or a degenerate one (zero spans)",

@@ -3,13 +3,15 @@ the bytes through the Transport interface, with the timing faults real links hav
 
 ``synth://imu?rate=200&seed=1`` is a WitMotion WT901 waving on a wrist; with ``loop_s=1.2`` the
 wrist repeats one gesture, each loop 1.2 s +- ``loop_jitter`` (8 %) long (a performance to extract a
-cycle from; ``transport.motion.mean_loop_s(t0, t1)`` is the truth);
+cycle from; ``transport.motion.mean_loop_s(d0, d1)`` is the truth);
 ``synth://imu?csv=PATH`` plays a recorded IMU CSV instead (x-io/Fusion layout: time in s, gyroscope
 x/y/z in deg/s, accelerometer x/y/z in g), at the recording's own timestamps, gaps included. Options model the link:
 device clock drift, fixed latency, arrival jitter, FTDI-style bursts, garbage bytes, an unplug
 window and a device clock reset. With ``realtime=false`` it runs on a virtual host clock as fast
 as the reader asks (deterministic, for CI); ``truth=true`` keeps the true host time of every
-reading so tests can measure clock-sync error end to end.
+reading so tests can measure clock-sync error end to end. What the simulator knows of the truth
+(``truth_ns``, ``latency_ns``, ``drift_ppm``, ``motion``) is its ``SimulatorTruth`` ability
+(``devices.transports.base``).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from collections.abc import Mapping
 
 from capture.clock import MONOTONIC, Clock
@@ -29,11 +31,14 @@ from devices.options import Option
 from devices.transports.base import Transport
 from sim_devices.motion import WavingMotion
 
+if TYPE_CHECKING:
+    from devices.transports.base import SimulatorTruth
+
 KINDS = {"imu": "witmotion"}
 
 
 class SynthTransport(Transport):
-    """Synthetic device bytes; see the module docstring."""
+    """Synthetic device bytes; see the module docstring. It is a ``SimulatorTruth``."""
 
     scheme = "synth"
     usage = "synth://imu?rate=HZ&seed=N"
@@ -76,9 +81,21 @@ class SynthTransport(Transport):
         self._open = False
         self._i = 0
         self._t0: int | None = None
+        #: with ``truth``: the true host time of every reading made (``SimulatorTruth``)
         self.truth_ns: list[int] = []
         self._queue: deque[tuple[int, bytes, int]] = deque()  # (arrival, bytes, true time) to deliver
         self._virtual_now = 0
+
+    # -- SimulatorTruth ------------------------------------------------------------------------------
+    @property
+    def latency_ns(self) -> int:
+        """The simulated fixed link latency (option ``latency_ms``), ns."""
+        return int(self.opts["latency_ms"] * 1e6)
+
+    @property
+    def drift_ppm(self) -> float:
+        """The simulated device clock drift (option ``drift_ppm``), ppm."""
+        return float(self.opts["drift_ppm"])
 
     def implied_kind(self) -> str:
         return KINDS[self.address]
@@ -235,6 +252,10 @@ class SynthTransport(Transport):
         while self._queue and self._queue[0][0] <= arrival:
             parts.append(self._queue.popleft()[1])
         return Chunk(b"".join(parts), stamp)
+
+
+if TYPE_CHECKING:  # the ability it declares, checked by mypy
+    _truth: type[SimulatorTruth] = SynthTransport
 
 
 def _load_imu_csv(path: str, url: str) -> np.ndarray:

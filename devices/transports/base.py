@@ -3,19 +3,28 @@
 A transport knows nothing about what the bytes mean (that is the Codec's job). Real ones wrap
 pyserial, hidapi or sockets; simulated ones (``synth://``, ``replay://`` in ``sim_devices``) implement
 the same interface, so the code above cannot tell them apart.
+
+This module owns the ``Transport`` base class, URL splitting, and the abilities some transports
+have beyond it, declared once as runtime-checkable protocols so that callers test for them with
+``isinstance`` instead of probing names: ``BatchSource`` (recorded chunks handed over many at once,
+by recorded time), ``RecordedTimeline`` (recorded times re-based onto a shared host timeline) and
+``SimulatorTruth`` (a simulator that knows when each reading really happened, with its
+``LoopingMotion``). Live transports have none of them.
 """
 
 from __future__ import annotations
 
 import abc
-from typing import Any, ClassVar
-from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 from urllib.parse import parse_qsl, unquote, urlsplit
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
-from capture.sample import Chunk, Direction
+from capture.sample import Chunk, ChunkRun, Direction
 from devices.options import Option, resolve_options
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
 
 
 class Transport(abc.ABC):
@@ -115,6 +124,95 @@ class Transport(abc.ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+# -- abilities beyond Transport ---------------------------------------------------------------------
+@runtime_checkable
+class BatchSource(Protocol):
+    """A transport that can hand over many recorded chunks at once, in recorded-time order
+    (``replay://``). ``Device.poll`` reads it in batches while ``batches`` is true, and the merged
+    replay reads several sources by their next chunk's recorded time."""
+
+    @property
+    def batches(self) -> bool:
+        """Whether chunks may be taken many at a time now (as fast as possible, recorded stamps);
+        when false, ``read_many`` returns at most one chunk, paced like ``read``."""
+        ...
+
+    def read_many(self, timeout: float, max_chunks: int, until_ns: int | None = None) -> ChunkRun | list[Chunk]:
+        """Up to ``max_chunks`` chunks; with ``until_ns``, only chunks recorded before that time
+        (possibly none).
+
+        Raises:
+            DeviceIOError: the transport is closed.
+            EndOfStream: the recording is over.
+        """
+        ...
+
+    def first_time_ns(self) -> int | None:
+        """Recorded time of the next chunk to be read, or ``None`` when there is none."""
+        ...
+
+
+@runtime_checkable
+class RecordedTimeline(Protocol):
+    """A transport replaying recorded times that can be re-based, so that several replayed devices
+    play on one host timeline (``replay://``)."""
+
+    def set_timeline(self, start_ns: int, t0_ns: int = 0) -> None:
+        """Play recorded time ``t0_ns`` (0: the first chunk) at host time ``start_ns``; call before
+        the device is opened."""
+        ...
+
+    @property
+    def lateness_ns(self) -> Sequence[int]:
+        """How late each paced chunk was delivered after its deadline, ns."""
+        ...
+
+
+@runtime_checkable
+class LoopingMotion(Protocol):
+    """Simulated motion that may repeat one gesture (``sim_devices.motion.WavingMotion``)."""
+
+    @property
+    def loop_s(self) -> float | None:
+        """Mean duration of one loop, s, or ``None`` for motion that does not loop."""
+        ...
+
+    def mean_loop_s(self, d0: float, d1: float) -> float:
+        """The mean loop duration over device seconds ``[d0, d1]``.
+
+        Raises:
+            ValueError: the motion has no loops, or ``d1 <= d0``.
+        """
+        ...
+
+
+@runtime_checkable
+class SimulatorTruth(Protocol):
+    """A simulator that knows when each reading really happened (``synth://``, ``simhid://``), so
+    the bus times a device gives can be checked against the truth."""
+
+    @property
+    def truth_ns(self) -> list[int]:
+        """Host time of each true reading, ns, in the order made (filled when the simulator's
+        ``truth`` option is on)."""
+        ...
+
+    @property
+    def latency_ns(self) -> int:
+        """The simulated fixed transport latency, ns."""
+        ...
+
+    @property
+    def drift_ppm(self) -> float:
+        """The simulated device clock drift, ppm (positive: the device clock runs fast)."""
+        ...
+
+    @property
+    def motion(self) -> LoopingMotion | None:
+        """The simulated motion, when the simulator has one."""
+        ...
 
 
 def split_url(url: str) -> tuple[str, str, dict[str, str]]:

@@ -14,17 +14,20 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 
 from capture.sample import Chunk, ChunkRun, DeviceEvent, Direction, EventKind, Sample, SampleBatch
 from devices import device_class
-from devices.base import Device
 from devices.bno08x import encode_rvc_many
 from devices.textline import TextLineLayout
 from devices.transports import open_transport
 from sim_devices.frames import witmotion_wire
+
+if TYPE_CHECKING:
+    from devices.base import Device
 
 TRACES = Path(__file__).resolve().parents[4] / "shared" / "traces"
 XIO = TRACES / "a_imu_csv" / "fusion_sensor_data.csv"
