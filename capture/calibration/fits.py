@@ -224,7 +224,7 @@ def _coverage(d: np.ndarray, angle_deg: float = 25.0) -> float:
 
 def _sphere_fit(x: np.ndarray) -> np.ndarray:
     """Algebraic sphere fit: centre (3,)."""
-    A = np.column_stack([2 * x, np.ones(len(x))])  # noqa: N806  |x|^2 = A (2c, r^2 - |c|^2)
+    A = np.column_stack([2 * x, np.ones(len(x))])  # |x|^2 = A (2c, r^2 - |c|^2)
     p: np.ndarray = np.linalg.lstsq(A, (x * x).sum(axis=1), rcond=None)[0]
     return p[:3]
 
@@ -283,11 +283,11 @@ def fit_magnetometer(mag: ArrayLike, *, model: str = "auto", min_coverage: float
     iu = np.triu_indices(3)
     if model == "ellipsoid":
         # the quadric x^T A x + 2 b^T x = 1 by linear least squares, D v = 1, v = (A's six entries, b)
-        D = np.column_stack([x[:, 0] ** 2, x[:, 1] ** 2, x[:, 2] ** 2,  # noqa: N806
+        D = np.column_stack([x[:, 0] ** 2, x[:, 1] ** 2, x[:, 2] ** 2,
                              2 * x[:, 0] * x[:, 1], 2 * x[:, 0] * x[:, 2], 2 * x[:, 1] * x[:, 2],
                              2 * x[:, 0], 2 * x[:, 1], 2 * x[:, 2]])
         v, *_ = np.linalg.lstsq(D, np.ones(len(x)), rcond=None)
-        A = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])  # noqa: N806
+        A = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
         if not np.all(np.linalg.eigvalsh(A) > 0):
             raise ConfigError(f"magnetometer fit: the readings do not determine an ellipsoid (coverage {cov:.2f}); "
                               f"use model='sphere' (hard iron only) or rotate through more orientations", source=source)
@@ -295,7 +295,7 @@ def fit_magnetometer(mag: ArrayLike, *, model: str = "auto", min_coverage: float
         k = 1.0 + float(c @ A @ c)
         if k <= 0:
             raise ConfigError("magnetometer fit: degenerate ellipsoid", source=source)
-        w, V = np.linalg.eigh(A / k)  # noqa: N806
+        w, V = np.linalg.eigh(A / k)
         p = np.concatenate([c, (V @ np.diag(np.sqrt(w)) @ V.T)[iu]])
     else:
         p = np.concatenate([c, [1.0 / float(np.median(np.linalg.norm(d, axis=1)))]])
@@ -303,12 +303,12 @@ def fit_magnetometer(mag: ArrayLike, *, model: str = "auto", min_coverage: float
     def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if model == "sphere":
             return p[:3], p[3] * np.eye(3)
-        S = np.zeros((3, 3))  # noqa: N806  the soft iron of mag_c = S (mag - hard)
+        S = np.zeros((3, 3))  # the soft iron of mag_c = S (mag - hard)
         S[iu] = p[3:]
         return p[:3], S + S.T - np.diag(np.diag(S))
 
     def res(p: np.ndarray, xs: np.ndarray) -> np.ndarray:
-        cc, S = unpack(p)  # noqa: N806
+        cc, S = unpack(p)
         r: np.ndarray = np.linalg.norm((xs - cc) @ S.T, axis=1) - 1.0
         return r
 
@@ -322,7 +322,7 @@ def fit_magnetometer(mag: ArrayLike, *, model: str = "auto", min_coverage: float
         if np.array_equal(new, inl):
             break
         inl = new
-    cc, S = unpack(p)  # noqa: N806
+    cc, S = unpack(p)
     det = float(np.linalg.det(S))
     if not det > 0 or not np.all(np.linalg.eigvalsh(S) > 0):
         raise ConfigError("magnetometer fit: the fitted soft-iron matrix is not positive definite", source=source)
