@@ -15,7 +15,7 @@ import logging
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, Final, NamedTuple
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -44,6 +44,9 @@ from devices.transports.base import BatchSource, Transport
 
 log = logging.getLogger(__name__)
 RECV_LOGGING_LEVEL = 9  # per-sample logging, below DEBUG
+#: A device-time step of this many nominal periods or more between two readings of a stream is a
+#: jump of the device clock, not lost readings: no gap is left in the sequence numbers for it.
+GAP_LIMIT: Final = 10_000
 
 
 class DeviceState(enum.Enum):
@@ -120,11 +123,7 @@ class Device(abc.ABC):
         hint = {k: v for k, v in transport.identity_hint().items() if v is not None}
         self.identity = DeviceIdentity(kind=self.kind, name=name, url=transport.url, **hint)
         self.streams: list[StreamInfo] = self.declare_streams()
-        self._seq = [0] * len(self.streams)
         self._build_domains()
-        self._last_ticks: list[int | None] = [None] * len(self.streams)
-        self._last_dev: list[int | None] = [None] * len(self.streams)
-        self._epochs = [-1] * len(self.streams)  # clock epoch each stream last saw
         self._reported_errors = 0
 
     # -- what subclasses provide -----------------------------------------------------------------
@@ -203,33 +202,6 @@ class Device(abc.ABC):
             return []
         return self.process_chunk(chunk)
 
-    # -- clock domains ---------------------------------------------------------------------------
-    def _build_domains(self) -> None:
-        """One ClockSync per device clock (streams of one device share it), one per pseudo-clocked stream."""
-        self._domains: list[ClockSync] = []
-        self._domain_of: list[int] = []
-        keys: dict[Any, int] = {}
-        for i, s in enumerate(self.streams):
-            key: Any = ("stream", i) if s.clock is None else s.clock if self.one_fit_per_clock else (
-                s.clock, s.nominal_rate_hz)
-            if key not in keys:
-                keys[key] = len(self._domains)
-                opts = self.clock_sync_options if s.clock is not None else {}
-                self._domains.append(ClockSync(s.name, s.clock, s.nominal_rate_hz, **opts))
-            self._domain_of.append(keys[key])
-        shared = [d for d in self._domains if not d.pseudo]
-        if len(shared) == 1:
-            shared[0].stream = self.name
-        self._domain_epochs = [-1] * len(self._domains)
-        self._one_clock = len(self._domains) == 1 and not self._domains[0].pseudo
-        self._periods = [1e9 / s.nominal_rate_hz if s.nominal_rate_hz else 0.0 for s in self.streams]
-
-    def _epoch_changed(self, d: int, epoch: int, t: int, out: list[Any]) -> None:
-        self._domain_epochs[d] = epoch
-        if epoch > 0:
-            out.append(DeviceEvent(self.name, EventKind.CLOCK_RESET, t,
-                                   f"{self._domains[d].stream}: clock epoch {epoch}"))
-
     def process_chunk(self, chunk: Chunk) -> list[Any]:
         """Decode one chunk (from the live transport or a recorded session) into bus items."""
         out: list[Any] = [DeviceChunk(self.name, chunk)]
@@ -273,129 +245,6 @@ class Device(abc.ABC):
         readings = self.drain_readings()
         if readings and self.stats.last_seen_ns is not None:
             self._stamp_readings(readings, self.stats.last_seen_ns, out)
-        return out
-
-    def _stamp_readings(self, readings: list[Reading], t: int, out: list[Any],
-                        send_ticks: int | None = None) -> list[Any]:
-        """Stamp the readings that completed in a chunk that arrived at ``t``; append bus items to ``out``."""
-        if not readings:
-            return out
-        if self._one_clock:
-            return self._stamp_one_clock(readings, t, out, send_ticks)
-        st = self.stats
-        groups: dict[int, list[Reading]] = {}
-        order: list[tuple[int, int]] = []
-        for r in readings:
-            g = groups.get(r.stream)
-            if g is None:
-                g = groups[r.stream] = []
-            order.append((r.stream, len(g)))
-            g.append(r)
-        times: dict[int, tuple[list[int | None], list[int]]] = {}
-        # device-clocked streams: one stamp per clock domain, readings in emission order
-        ticks_by: dict[int, list[int]] = {si: self._ticks_of(si, rs) for si, rs in groups.items()
-                                          if self.streams[si].clock is not None}
-        touched: list[int] = []
-        for d in sorted({self._domain_of[si] for si in ticks_by}):
-            sel = [(si, j) for si, j in order if self._domain_of[si] == d]
-            devs, bus = self._domains[d].stamp(t, [ticks_by[si][j] for si, j in sel], send_ticks=send_ticks)
-            for (si, j), dv, b in zip(sel, devs, bus):
-                tl = times.get(si)
-                if tl is None:
-                    tl = times[si] = ([], [])
-                tl[0].append(dv)
-                tl[1].append(b)
-            touched.append(d)
-        for si, rs in groups.items():
-            if self.streams[si].clock is None:
-                d = self._domain_of[si]
-                times[si] = self._domains[d].stamp(t, None, len(rs))
-                touched.append(d)
-        for d in touched:
-            if self._domains[d].epoch != self._domain_epochs[d]:
-                self._epoch_changed(d, self._domains[d].epoch, t, out)
-        for si, rs in groups.items():
-            devs, bus = times[si]
-            info = self.streams[si]
-            seq = self._seq[si]
-            name = info.name
-            period = 1e9 / info.nominal_rate_hz if info.nominal_rate_hz else 0.0
-            ep = self._domains[self._domain_of[si]].epoch
-            if ep != self._epochs[si]:
-                self._epochs[si] = ep
-                self._last_dev[si] = None
-            last_dev = self._last_dev[si]
-            for r, dv, b in zip(rs, devs, bus):
-                if dv is not None and period:
-                    # A device-time step of k periods means k-1 readings were lost before the host:
-                    # leave a gap of that size in the sequence numbers.
-                    if last_dev is not None:
-                        k = round((dv - last_dev) / period)
-                        if 1 < k < 10_000:
-                            seq += k - 1
-                            st.lost_readings += k - 1
-                    last_dev = dv
-                out.append(Sample(name, seq, t, dv, b, r.values))
-                seq += 1
-            self._last_dev[si] = last_dev
-            self._seq[si] = seq
-            st.readings += len(rs)
-        for d in touched:
-            cs = self._domains[d].pop_state(t)
-            if cs is not None:
-                out.append(cs)
-        return out
-
-    def _stamp_one_clock(self, readings: list[Reading], t: int, out: list[Any],
-                         send_ticks: int | None = None) -> list[Any]:
-        """``_stamp_readings`` for devices whose streams all run on one device clock (the common case):
-        one stamp call, readings in emission order, the same results as the general path."""
-        streams = self.streams
-        last_ticks = self._last_ticks
-        ticks: list[int] = []
-        for r in readings:
-            tk = r.ticks
-            si = r.stream
-            if tk is None:
-                info = streams[si]
-                self.stats.missing_time += 1
-                last = last_ticks[si]
-                step = round(info.clock.tick_hz / info.nominal_rate_hz) if info.nominal_rate_hz else 1  # type: ignore[union-attr]
-                tk = (0 if last is None else last) + step
-                if info.clock.wrap_ticks:  # type: ignore[union-attr]
-                    tk %= info.clock.wrap_ticks  # type: ignore[union-attr]
-            last_ticks[si] = tk
-            ticks.append(tk)
-        dom = self._domains[0]
-        devs, bus = dom.stamp(t, ticks, send_ticks=send_ticks)
-        ep = dom.epoch
-        if ep != self._domain_epochs[0]:
-            self._epoch_changed(0, ep, t, out)
-        seqs = self._seq
-        last_devs = self._last_dev
-        epochs = self._epochs
-        periods = self._periods
-        st = self.stats
-        for r, dv, b in zip(readings, devs, bus):
-            si = r.stream
-            if epochs[si] != ep:
-                epochs[si] = ep
-                last_devs[si] = None
-            seq = seqs[si]
-            ld = last_devs[si]
-            period = periods[si]
-            if ld is not None and period:
-                k = round((dv - ld) / period)  # type: ignore[operator]
-                if 1 < k < 10_000:
-                    seq += k - 1
-                    st.lost_readings += k - 1
-            last_devs[si] = dv
-            out.append(Sample(streams[si].name, seq, t, dv, b, r.values))
-            seqs[si] = seq + 1
-        st.readings += len(readings)
-        cs = dom.pop_state(t)
-        if cs is not None:
-            out.append(cs)
         return out
 
     # -- batch path ------------------------------------------------------------------------------
@@ -446,42 +295,215 @@ class Device(abc.ABC):
             size = total
         return out
 
+    # -- stamping: clock domains, device and bus times, sequence numbers --------------------------
+    # One implementation for both paths. ``_stamp_readings`` stamps the readings one chunk completed
+    # (the live path, and whatever ``finish`` drains); ``_emit_batch`` stamps a decoded run of
+    # chunks with numpy (``process_chunks``). Both take the device's clock domains in the same
+    # order (device clocks by index, then pseudo clocks), give each domain its readings in emission
+    # order, and number each stream's readings by the same rule (``GAP_LIMIT``), so they give
+    # identical samples; ``tests/unit/devices/test_batch_path*.py`` hold them to it.
+    def _build_domains(self) -> None:
+        """One ClockSync per device clock (streams of one device share it), one per pseudo-clocked
+        stream; and each stream's numbering state."""
+        self._domains: list[ClockSync] = []
+        self._domain_of: list[int] = []
+        keys: dict[Any, int] = {}
+        for i, s in enumerate(self.streams):
+            key: Any = ("stream", i) if s.clock is None else s.clock if self.one_fit_per_clock else (
+                s.clock, s.nominal_rate_hz)
+            if key not in keys:
+                keys[key] = len(self._domains)
+                opts = self.clock_sync_options if s.clock is not None else {}
+                self._domains.append(ClockSync(s.name, s.clock, s.nominal_rate_hz, **opts))
+            self._domain_of.append(keys[key])
+        shared = [d for d in self._domains if not d.pseudo]
+        if len(shared) == 1:
+            shared[0].stream = self.name
+        self._domain_epochs = [-1] * len(self._domains)
+        #: one domain: no regrouping, and samples keep their emission order
+        self._single_domain = len(self._domains) == 1
+        #: the streams of each domain
+        self._members: list[list[int]] = [[] for _ in self._domains]
+        for i, d in enumerate(self._domain_of):
+            self._members[d].append(i)
+        n = len(self.streams)
+        self._names = [s.name for s in self.streams]
+        #: nominal period of each stream, ns (0: no nominal rate, so no gap is ever inferred)
+        self._periods = [1e9 / s.nominal_rate_hz if s.nominal_rate_hz else 0.0 for s in self.streams]
+        #: device ticks a reading that lacks them is given after the previous one, and where they wrap
+        self._tick_steps = [round(s.clock.tick_hz / s.nominal_rate_hz) if s.clock is not None and s.nominal_rate_hz
+                            else 1 for s in self.streams]
+        self._tick_wraps = [s.clock.wrap_ticks if s.clock is not None else None for s in self.streams]
+        self._seq = [0] * n
+        self._last_ticks: list[int | None] = [None] * n
+        self._last_dev: list[int | None] = [None] * n
+        self._epochs = [-1] * n  # clock epoch each stream last saw
+
+    def _epoch_changed(self, d: int, epoch: int, t: int, out: list[Any]) -> None:
+        self._domain_epochs[d] = epoch
+        if epoch > 0:
+            out.append(DeviceEvent(self.name, EventKind.CLOCK_RESET, t,
+                                   f"{self._domains[d].stream}: clock epoch {epoch}"))
+
+    def _stamp_readings(self, readings: list[Reading], t: int, out: list[Any],
+                        send_ticks: int | None = None) -> list[Any]:
+        """Stamp the readings that completed in a chunk that arrived at ``t``; append bus items to
+        ``out``: clock-reset events, then the samples (in emission order on a device with one
+        clock domain, else stream by stream), then clock states."""
+        if not readings:
+            return out
+        domains = self._domains
+        if self._single_domain:
+            dom = domains[0]
+            if dom.pseudo:
+                devs, bus = dom.stamp(t, None, len(readings))
+            else:
+                devs, bus = dom.stamp(t, self._ticks_of(readings), send_ticks=send_ticks)
+            ep = dom.epoch
+            if ep != self._domain_epochs[0]:
+                self._epoch_changed(0, ep, t, out)
+            self._number(readings, devs, bus, ep, t, out)
+            cs = dom.pop_state(t)
+            if cs is not None:
+                out.append(cs)
+            return out
+        # several domains: the readings by stream (in order of first appearance), each domain
+        # stamped once with its readings in emission order, then numbered stream by stream
+        domain_of = self._domain_of
+        groups: dict[int, list[Reading]] = {}
+        for r in readings:
+            g = groups.get(r.stream)
+            if g is None:
+                g = groups[r.stream] = []
+            g.append(r)
+        times: dict[int, tuple[list[int | None], list[int]]] = {}
+        touched: list[int] = []
+        for d in sorted({domain_of[si] for si in groups if not domains[domain_of[si]].pseudo}):
+            dom = domains[d]
+            members = self._members[d]
+            if len(members) == 1:
+                si = members[0]
+                times[si] = dom.stamp(t, self._ticks_of(groups[si]), send_ticks=send_ticks)
+            else:
+                sel = [r for r in readings if domain_of[r.stream] == d]
+                devs, bus = dom.stamp(t, self._ticks_of(sel), send_ticks=send_ticks)
+                for si in members:
+                    if si in groups:
+                        times[si] = ([], [])
+                for r, dv, b in zip(sel, devs, bus):  # noqa: B905 - equal lengths, hot path
+                    tl = times[r.stream]
+                    tl[0].append(dv)
+                    tl[1].append(b)
+            if dom.epoch != self._domain_epochs[d]:
+                self._epoch_changed(d, dom.epoch, t, out)
+            touched.append(d)
+        for si, rs in groups.items():
+            d = domain_of[si]
+            dom = domains[d]
+            if dom.pseudo:
+                times[si] = dom.stamp(t, None, len(rs))
+                if dom.epoch != self._domain_epochs[d]:
+                    self._epoch_changed(d, dom.epoch, t, out)
+                touched.append(d)
+        for si, rs in groups.items():
+            devs, bus = times[si]
+            self._number(rs, devs, bus, domains[domain_of[si]].epoch, t, out)
+        for d in touched:
+            cs = domains[d].pop_state(t)
+            if cs is not None:
+                out.append(cs)
+        return out
+
+    def _number(self, readings: list[Reading], devs: list[int | None], bus: list[int], epoch: int, t: int,
+                out: list[Any]) -> None:
+        """Samples of stamped readings (one domain's, or one stream's), appended to ``out`` with their
+        sequence numbers: a device-time step of k nominal periods (1 < k < ``GAP_LIMIT``) between two
+        readings of a stream means k - 1 readings were lost before the host, and leaves a gap of that
+        size; no gap is inferred at a stream's first reading, across a clock reset (a new
+        ``epoch``) or without a device time. ``_emit_batch`` applies the same rule to arrays."""
+        names = self._names
+        seqs = self._seq
+        last_devs = self._last_dev
+        epochs = self._epochs
+        periods = self._periods
+        st = self.stats
+        append = out.append
+        # equal lengths; zip's strict keyword would cost 0.15 us a call on the live path
+        for r, dv, b in zip(readings, devs, bus):  # noqa: B905
+            si = r.stream
+            if epochs[si] != epoch:
+                epochs[si] = epoch
+                last_devs[si] = None
+            seq = seqs[si]
+            if dv is not None:
+                ld = last_devs[si]
+                period = periods[si]
+                if ld is not None and period:
+                    k = round((dv - ld) / period)
+                    if 1 < k < GAP_LIMIT:
+                        seq += k - 1
+                        st.lost_readings += k - 1
+                last_devs[si] = dv
+            append(Sample(names[si], seq, t, dv, b, r.values))
+            seqs[si] = seq + 1
+        st.readings += len(readings)
+
+    def _ticks_of(self, readings: list[Reading]) -> list[int]:
+        """Device ticks of readings on device clocks; a reading that lacks them (a lost time packet)
+        gets its stream's previous ticks plus one nominal period, counted in ``stats.missing_time``."""
+        last_ticks = self._last_ticks
+        out: list[int] = []
+        for r in readings:
+            tk = r.ticks
+            si = r.stream
+            if tk is None:
+                self.stats.missing_time += 1
+                last = last_ticks[si]
+                tk = (0 if last is None else last) + self._tick_steps[si]
+                wrap = self._tick_wraps[si]
+                if wrap:
+                    tk %= wrap
+            last_ticks[si] = tk
+            out.append(tk)
+        return out
+
     def _emit_batch(self, chunks: ChunkRun, batch: BatchReadings) -> list[Any]:
+        """``_stamp_readings`` for a decoded run of chunks, with numpy: the raw chunks, then per
+        stream its clock-reset events and one ``SampleBatch``, then clock states."""
         out: list[Any] = [DeviceChunks(self.name, chunks)]
         st = self.stats
         st.chunks += len(chunks)
         st.bytes += len(chunks.data)
         hosts = chunks.t_ns
         st.last_seen_ns = int(hosts[-1])
+        streams = batch.streams
         res: dict[int, tuple[np.ndarray | None, np.ndarray, np.ndarray]] = {}
         touched: list[int] = []
-        for d in sorted({self._domain_of[si] for si in batch.streams if self.streams[si].clock is not None}):
-            members = [si for si in batch.streams if self._domain_of[si] == d]
-            emit = np.concatenate([batch.streams[si].emit for si in members])
-            order = np.argsort(emit, kind="stable")
-            chunk_of = np.concatenate([batch.streams[si].chunk for si in members])[order]
-            ticks = np.concatenate([self._ticks_many(si, batch.streams[si].ticks) for si in members])[order]
-            dev, bus, ep = self._domains[d].stamp_many(hosts, chunk_of, ticks)
-            inv = np.empty_like(order)
-            inv[order] = np.arange(order.size)
-            o = 0
-            for si in members:
-                n = batch.streams[si].chunk.size
-                idx = inv[o:o + n]
-                res[si] = (None if dev is None else dev[idx], bus[idx], ep[idx])
-                o += n
+        for d, members in self._batch_domains(batch):
+            dom = self._domains[d]
+            if dom.pseudo:
+                (si,) = members
+                res[si] = dom.stamp_many(hosts, streams[si].chunk, None)
+            else:
+                # the domain's readings in emission order, stamped at once, then back to their streams
+                emit = np.concatenate([streams[si].emit for si in members])
+                order = np.argsort(emit, kind="stable")
+                chunk_of = np.concatenate([streams[si].chunk for si in members])[order]
+                ticks = np.concatenate([self._batch_ticks(si, streams[si].ticks) for si in members])[order]
+                dev, bus, ep = dom.stamp_many(hosts, chunk_of, ticks)
+                inv = np.empty_like(order)
+                inv[order] = np.arange(order.size)
+                o = 0
+                for si in members:
+                    idx = inv[o:o + streams[si].chunk.size]
+                    res[si] = (None if dev is None else dev[idx], bus[idx], ep[idx])
+                    o += idx.size
             touched.append(d)
-        for si, sr in batch.streams.items():
-            if self.streams[si].clock is None:
-                d = self._domain_of[si]
-                res[si] = self._domains[d].stamp_many(hosts, sr.chunk, None)
-                touched.append(d)
-        for si, sr in batch.streams.items():
+        for si, sr in streams.items():
             dev, bus, ep = res[si]
             n = sr.chunk.size
             if n == 0:
                 continue
-            info = self.streams[si]
             dmn = self._domain_of[si]
             # clock epochs: events, and no lost-reading gaps across a reset
             prev_ep = np.empty_like(ep)
@@ -493,14 +515,16 @@ class Device(abc.ABC):
                     self._epoch_changed(dmn, int(ep[j]), int(hosts[sr.chunk[j]]), out)
             self._epochs[si] = int(ep[-1])
             seq = self._seq[si] + np.arange(n, dtype=np.int64)
-            period = 1e9 / info.nominal_rate_hz if info.nominal_rate_hz else 0.0
+            period = self._periods[si]
             if dev is not None and period:
+                # ``_number``'s rule on arrays: a step of k periods, 1 < k < GAP_LIMIT, means k - 1
+                # readings were lost, except at a stream's first reading or across a clock reset
                 last = self._last_dev[si]
                 prev = np.empty_like(dev)
                 prev[0] = dev[0] if last is None else last
                 prev[1:] = dev[:-1]
                 k = np.round((dev - prev) / period)
-                gaps = np.where((k > 1) & (k < 10_000), k - 1, 0).astype(np.int64)
+                gaps = np.where((k > 1) & (k < GAP_LIMIT), k - 1, 0).astype(np.int64)
                 gaps[new_ep] = 0
                 if last is None:
                     gaps[0] = 0
@@ -510,43 +534,35 @@ class Device(abc.ABC):
             self._seq[si] = int(seq[-1]) + 1
             st.readings += n
             tdev = np.full(n, NO_TIME, np.int64) if dev is None else dev
-            out.append(SampleBatch(info.name, seq, hosts[sr.chunk], tdev, bus, sr.values))
+            out.append(SampleBatch(self._names[si], seq, hosts[sr.chunk], tdev, bus, sr.values))
         t_last = int(hosts[-1])
-        for d in dict.fromkeys(touched):
+        for d in touched:
             cs = self._domains[d].pop_state(t_last)
             if cs is not None:
                 out.append(cs)
         return out
 
-    def _ticks_of(self, si: int, rs: list[Reading]) -> list[int]:
-        """Device ticks of readings; a reading that lacks one (a lost time packet) gets the previous
-        tick plus one nominal period, counted in ``stats.missing_time``."""
-        info = self.streams[si]
-        last = self._last_ticks[si]
-        step = round(info.clock.tick_hz / info.nominal_rate_hz) if info.clock and info.nominal_rate_hz else 1
-        wrap = info.clock.wrap_ticks if info.clock else None
-        out: list[int] = []
-        for r in rs:
-            if r.ticks is None:
-                self.stats.missing_time += 1
-                if last is None:
-                    last = 0
-                tk = last + step
-                if wrap:
-                    tk %= wrap
+    def _batch_domains(self, batch: BatchReadings) -> list[tuple[int, list[int]]]:
+        """The clock domains a batch touches with their streams, in ``_stamp_readings``' order:
+        device clocks by domain index, then pseudo clocks in the order of their streams."""
+        domain_of = self._domain_of
+        clocked: dict[int, list[int]] = {}
+        pseudo: list[tuple[int, list[int]]] = []
+        for si in batch.streams:
+            d = domain_of[si]
+            if self._domains[d].pseudo:
+                pseudo.append((d, [si]))
             else:
-                tk = r.ticks
-            out.append(tk)
-            last = tk
-        self._last_ticks[si] = last
-        return out
+                clocked.setdefault(d, []).append(si)
+        return [(d, clocked[d]) for d in sorted(clocked)] + pseudo
 
-    def _ticks_many(self, si: int, ticks: np.ndarray | None) -> np.ndarray:
+    def _batch_ticks(self, si: int, ticks: np.ndarray | None) -> np.ndarray:
         if ticks is None or ticks.size == 0:
             raise ValueError(f"{self.streams[si].name}: a batch decoder must give ticks for a clocked stream")
         self._last_ticks[si] = int(ticks[-1])
         return ticks
 
+    # -- state ----------------------------------------------------------------------------------
     def reset_after_reconnect(self) -> int:
         """Forget partial frames after the pipe was reopened; returns bytes discarded."""
         return self.codec.reset()
