@@ -61,19 +61,26 @@ def device_class(kind: str) -> type[Device]:
     """The Device subclass for ``kind``.
 
     Raises:
-        DeviceUnavailableError: unknown kind, or its module cannot be imported.
+        DeviceUnavailableError: unknown kind, its module cannot be imported, or what it names is not
+            a Device subclass.
     """
+    ep = None if kind in DEVICE_TYPES else _device_entry_points().get(kind)
+    if kind not in DEVICE_TYPES and ep is None:
+        raise DeviceUnavailableError(f"unknown device kind {kind!r}; known kinds: {', '.join(known_kinds())}",
+                                     source=kind)
+    where = ":".join(DEVICE_TYPES[kind]) if ep is None else f"entry point {ep.value}"
     try:
-        if kind in DEVICE_TYPES:
-            mod, cls = DEVICE_TYPES[kind]
-            return getattr(importlib.import_module(mod), cls)  # type: ignore[no-any-return]
-        ep = _device_entry_points().get(kind)
-        if ep is not None:
-            return ep.load()  # type: ignore[no-any-return]
-    except ImportError as exc:
-        raise DeviceUnavailableError(f"device kind {kind!r} cannot be loaded: {exc}", source=kind) from exc
-    raise DeviceUnavailableError(f"unknown device kind {kind!r}; known kinds: {', '.join(known_kinds())}",
-                                 source=kind)
+        if ep is None:
+            mod, name = DEVICE_TYPES[kind]
+            obj = getattr(importlib.import_module(mod), name)
+        else:
+            obj = ep.load()
+    except (ImportError, AttributeError) as exc:
+        raise DeviceUnavailableError(f"device kind {kind!r} cannot be loaded from {where}: {exc}",
+                                     source=kind) from exc
+    if not (isinstance(obj, type) and issubclass(obj, Device)):
+        raise DeviceUnavailableError(f"device kind {kind!r}: {where} is {obj!r}, not a Device subclass", source=kind)
+    return obj
 
 
 @dataclass

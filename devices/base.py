@@ -15,7 +15,7 @@ import logging
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, ClassVar, Final, NamedTuple
+from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, NamedTuple, TypeVar
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -77,8 +77,18 @@ class DeviceStats:
     last_seen_ns: int | None = None
 
 
-class Device(abc.ABC):
-    """Base class of every device kind.
+#: the codec class of a device kind (``Device[WitMotionCodec]``), so ``device.codec`` has its type; a
+#: bare ``Device`` is ``Device[Codec]`` (a TypeVar default: PEP 696, in ``typing`` from Python 3.13)
+if TYPE_CHECKING:
+    import typing_extensions
+
+    CodecT = typing_extensions.TypeVar("CodecT", bound=Codec, default=Codec)
+else:
+    CodecT = TypeVar("CodecT", bound=Codec)
+
+
+class Device(abc.ABC, Generic[CodecT]):
+    """Base class of every device kind, generic in its codec.
 
     Args:
         name: unique device name on the bus (streams are ``<name>/<stream>``).
@@ -90,7 +100,7 @@ class Device(abc.ABC):
 
     kind: ClassVar[str] = ""
     description: ClassVar[str] = ""
-    codec_cls: ClassVar[type[Codec]]
+    codec_cls: type[CodecT]
     options: ClassVar[dict[str, Option]] = {}
     #: keyword arguments for the ClockSync of each device clock (``capture.clocksync.ClockSync``), e.g.
     #: ``{"window_s": 60.0}`` for a phone whose messages arrive with tens of ms of jitter
@@ -113,7 +123,7 @@ class Device(abc.ABC):
         self.opts = resolve_options(self.options, options or {}, f"device {name} ({self.kind})",
                                     f"{self.kind}@URL")
         self._given_options = dict(options or {})
-        self.codec = self.codec_cls(strict=strict)
+        self.codec: CodecT = self.codec_cls(strict=strict)
         self.state = DeviceState.CLOSED
         self.stats = DeviceStats()
         #: successful opens (handshake done); 0 at the end of a take means the device never came

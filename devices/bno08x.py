@@ -52,7 +52,7 @@ FRAME = ("BNO08x sensor frame (datasheet figure 4-1, or as remapped by the FRS s
          "euler: intrinsic Z-Y'-X'' (yaw, then pitch, then roll), counter-clockwise positive, yaw since reset")
 
 
-class Bno08xRvcImu(Device):
+class Bno08xRvcImu(Device[Bno08xRvcCodec]):
     """A BNO08x IMU streaming UART-RVC frames."""
 
     kind = "bno08x_rvc"
@@ -73,10 +73,6 @@ class Bno08xRvcImu(Device):
                              (ACC_Q,) * 3),
         ]
 
-    @property
-    def codec_rvc(self) -> Bno08xRvcCodec:
-        return self.codec  # type: ignore[return-value]
-
     def frame_to_readings(self, frame: RvcFrame) -> Iterable[Reading]:
         t = frame.counter if self._clocked else None
         return (Reading(EULER, (frame.roll * ANGLE_Q, frame.pitch * ANGLE_Q, frame.yaw * ANGLE_Q), t),
@@ -84,12 +80,12 @@ class Bno08xRvcImu(Device):
 
     # -- batch path ------------------------------------------------------------------------------
     def batch_ready(self) -> bool:
-        return self.codec_rvc.locked
+        return self.codec.locked
 
     def decode_batch(self, chunks: ChunkRun) -> BatchReadings | None:
         """Vectorised decoding of a clean run (frames continuing the locked stream, split anywhere);
         anything else returns ``None`` and the chunks take the per-chunk path."""
-        res = self.codec_rvc.feed_clean(chunks.data)
+        res = self.codec.feed_clean(chunks.data)
         if res is None:
             return None
         a, lead = res
@@ -107,7 +103,7 @@ class Bno08xRvcImu(Device):
     # -- end of take / reconnect -------------------------------------------------------------------
     def finish(self) -> list[Any]:
         """Decide a last frame that was waiting for lookahead bytes, then end the take as usual."""
-        frames = self.codec_rvc.flush()
+        frames = self.codec.flush()
         self._tail = [r for f in frames for r in self.frame_to_readings(f)]
         return super().finish()
 

@@ -76,7 +76,7 @@ def _all_nan(v: tuple[float, ...]) -> bool:
     return all(math.isnan(x) for x in v)
 
 
-class PhonePage(Device):
+class PhonePage(Device[PageCodec]):
     """A phone running perfcap's built-in web page."""
 
     kind = "phone"
@@ -201,7 +201,7 @@ class PhonePage(Device):
         return h
 
 
-class SensorLoggerPhone(Device):
+class SensorLoggerPhone(Device[SensorLoggerCodec]):
     """A phone running the Sensor Logger app with HTTP push to perfcap."""
 
     kind = "sensorlogger"
@@ -314,7 +314,7 @@ class SensorLoggerPhone(Device):
         ``late_messages``, ``sessions``) and entry counts the streams do not take
         (``unknown_entries`` from the codec, ``unused_entries``)."""
         h = super().health()
-        codec: SensorLoggerCodec = self.codec  # type: ignore[assignment]
+        codec = self.codec
         h.update(lost_messages=self.lost_messages, duplicate_messages=self.duplicate_messages,
                  late_messages=self.late_messages, sessions=self.sessions,
                  unknown_entries=sum(codec.unknown_names.values()), unknown_names=dict(codec.unknown_names),

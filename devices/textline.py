@@ -298,7 +298,7 @@ class TextLineLayout:
                 for j in range(n)]
 
 
-class TextLineImu(Device):
+class TextLineImu(Device[TextLineCodec]):
     """A sketch printing IMU readings as text lines (see the module docstring)."""
 
     kind = "textline"
@@ -316,10 +316,6 @@ class TextLineImu(Device):
         self._plans = [(si, p.fields, (math.nan,) * len(p.channels), p.mask) for si, p in enumerate(lay.plans)]
         return [self.stream_info(p.suffix, p.kind, p.channels, p.units, lay.rate, FRAME, lay.clock)
                 for p in lay.plans]
-
-    @property
-    def codec_text(self) -> TextLineCodec:
-        return self.codec  # type: ignore[return-value]
 
     def frame_to_readings(self, frame: TextFrame) -> Iterable[Reading]:
         v = frame.values
@@ -342,13 +338,13 @@ class TextLineImu(Device):
     # -- batch path ------------------------------------------------------------------------------
     def batch_ready(self) -> bool:
         """Plain CSV may be vectorised; a key:value stream (also in ``auto``) never is, so do not try."""
-        c = self.codec_text
+        c = self.codec
         return c.fmt != KV and c.last_format != KV
 
     def decode_batch(self, chunks: ChunkRun) -> BatchReadings | None:
         """Vectorised decoding of runs of plain CSV lines (``TextLineCodec.feed_clean``); anything else
         returns ``None`` and the chunks take the per-chunk path."""
-        res = self.codec_text.feed_clean(chunks.data)
+        res = self.codec.feed_clean(chunks.data)
         if res is None:
             return None
         vals, nl = res

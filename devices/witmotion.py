@@ -50,7 +50,7 @@ IMU, EULER, MAGS, QUATS = 0, 1, 2, 3
 FRAME = "sensor frame as printed on the WT901 case: x, y, z right-handed"
 
 
-class WitMotionImu(Device):
+class WitMotionImu(Device[WitMotionCodec]):
     """A WitMotion WT901-family IMU."""
 
     kind = "witmotion"

@@ -19,7 +19,7 @@ from typing import Any
 
 from capture.errors import DeviceInitError, DeviceTimeoutError
 from capture.sample import Chunk, DeviceChunk, DeviceDescriptor
-from devices.base import Device
+from devices.base import CodecT, Device
 from devices.transports.hid import HidTransportBase
 
 REPORT_DESCRIPTOR_KEY = "hid.report_descriptor"
@@ -30,7 +30,7 @@ def feature_key(report_id: int) -> str:
     return f"hid.feature.{report_id:02x}"
 
 
-class HidDevice(Device):
+class HidDevice(Device[CodecT]):
     """A Device whose transport is a HID transport (``hid://``, ``simhid://`` or a HID replay)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:

@@ -74,7 +74,7 @@ def _idx(fields: list[FieldLayout], usage: int) -> int | None:
     return None
 
 
-class GenericHid(HidDevice):
+class GenericHid(HidDevice[HidReportCodec]):
     """A HID mouse, pen or touch digitizer, decoded from its report descriptor."""
 
     kind = "hid"
@@ -253,7 +253,7 @@ class GenericHid(HidDevice):
             contacts = [g for g in groups.values() if _idx(g, GD_X) is not None]
             if not contacts:
                 continue
-            if any(r.fields[_idx(g, GD_X)].unit == "m" for g in contacts):  # type: ignore[index]
+            if any(r.fields[ix].unit == "m" for g in contacts if (ix := _idx(g, GD_X)) is not None):
                 unit_xy = "m"
             icount = _idx(tf, DIG_CONTACT_COUNT)
             self._plans.setdefault(r.report_id, []).append(self._touch_plan(si, r, contacts, icount))

@@ -72,7 +72,7 @@ JOYCON_FRAME = ("Joy-Con (L) IMU sensor frame (dekuNukem imu_sensor_notes); a Jo
                 "match (its sensor is turned 180 deg about x); right-handed")
 
 
-class _SwitchBase(HidDevice):
+class _SwitchBase(HidDevice[SwitchCodec]):
     codec_cls = SwitchCodec
     frame_text: ClassVar[str] = PRO_FRAME
     stick_channels: ClassVar[tuple[str, ...]] = ("lx", "ly", "rx", "ry")

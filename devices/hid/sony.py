@@ -83,7 +83,7 @@ TOUCH_CH = ("t0_active", "t0_id", "t0_x", "t0_y", "t1_active", "t1_id", "t1_x", 
 REDUCED_PER_S = 250
 
 
-class _SonyPad(HidDevice):
+class _SonyPad(HidDevice[DualShock4Codec | DualSenseCodec]):
     """Shared parts of the two pads."""
 
     model: ClassVar[str] = ""
@@ -215,7 +215,7 @@ class _SonyPad(HidDevice):
 
     def health(self) -> dict[str, Any]:
         h = super().health()
-        h["reduced_reports"] = self.codec.stats.reduced_reports  # type: ignore[attr-defined]
+        h["reduced_reports"] = self.codec.stats.reduced_reports
         h["calibration_fallbacks"] = self.calibration_fallbacks
         h["bus"] = self.bus_kind
         return h

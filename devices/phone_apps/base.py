@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from capture.sample import Chunk, DeviceClockSpec, DeviceEvent, EventKind, StreamInfo
-from devices.base import Device
+from devices.base import CodecT, Device
 
 G0 = 9.80665
 NAN = float("nan")
@@ -70,7 +70,7 @@ class NameTally:
         return sum(self.counts.values())
 
 
-class AppDevice(Device):
+class AppDevice(Device[CodecT]):
     """Common parts: streams from ``StreamDecl``s, and errors the device layer finds (counted by the
     codec's ``reject``) reported like the codec's own."""
 

@@ -45,7 +45,7 @@ from devices.phone_apps.base import (
 HYPERIMU_CLOCK = DeviceClockSpec(tick_hz=1000.0)
 
 
-class HyperImuPhone(AppDevice):
+class HyperImuPhone(AppDevice[HyperImuCodec]):
     """A phone running HyperIMU, streaming CSV rows over UDP or TCP."""
 
     kind = "hyperimu"
@@ -74,7 +74,7 @@ class HyperImuPhone(AppDevice):
         except ValueError as exc:
             raise ConfigError(f"{where}: sensors={o['sensors']!r}: {exc}; expected sensors=NAME,NAME,... in the "
                               "app's order", source=where) from None
-        fields = self.codec_himu.fields
+        fields = self.codec.fields
         at = {s: fields.index(f"{s}.x") for s in sensors if s != "_"}
         decls: list[StreamDecl] = []
         #: (stream, [(field index, channel position)], rotation vector?)
@@ -114,10 +114,6 @@ class HyperImuPhone(AppDevice):
         self._tf = 0 if o["timestamp"] else None
         return self._declare(decls, o["rate"] or None, HYPERIMU_CLOCK if o["timestamp"] else None)
 
-    @property
-    def codec_himu(self) -> HyperImuCodec:
-        return self.codec  # type: ignore[return-value]
-
     def frame_to_readings(self, frame: TextFrame) -> Iterable[Reading]:
         v = frame.values
         ticks = None if self._tf is None else round(v[self._tf])
@@ -133,7 +129,7 @@ class HyperImuPhone(AppDevice):
     def health(self) -> dict[str, Any]:
         """Base counters plus ``skipped_lines`` (headers, blank lines) and ``mac`` (the last MAC seen)."""
         h = super().health()
-        h.update(mac=self.codec_himu.last_mac)
+        h.update(mac=self.codec.last_mac)
         return h
 
 

@@ -259,7 +259,7 @@ class OscLayout:
                             ("quat", (att, tuple(QUAT_CHANNELS.index(c) for c in order), 1.0)),
                             ("gyro", (eul, (0, 1, 2), 180.0 / math.pi))):
             addr = f"{prefix}/{name}"
-            self.exact[addr] = OscRoute(addr, *route)  # type: ignore[arg-type]
+            self.exact[addr] = OscRoute(addr, *route)
 
     def _custom(self, entries: list[tuple[str, str, tuple[str, ...], float]]) -> None:
         names: list[str] = []
@@ -326,7 +326,7 @@ def zigsim_uuid(frame: OscFrame) -> str | None:
     return None
 
 
-class OscPhone(AppDevice):
+class OscPhone(AppDevice[OscCodec]):
     """A phone app sending OSC over UDP: ZIG SIM, GyrOSC-style, or a custom address map."""
 
     kind = "osc"
@@ -359,10 +359,6 @@ class OscPhone(AppDevice):
         self.layout = OscLayout(self.opts, self._given_options, f"device {self.name} (osc)")
         rate = self.opts["rate"] or None
         return self._declare(self.layout.decls, rate, None)
-
-    @property
-    def codec_osc(self) -> OscCodec:
-        return self.codec  # type: ignore[return-value]
 
     def frame_to_readings(self, frame: OscFrame) -> Iterable[Reading]:
         out: list[Reading] = []
@@ -409,7 +405,7 @@ class OscPhone(AppDevice):
             p is None or ((type(a) is float or type(a) is int) and math.isfinite(a)) for p, a in zip(route.positions, args))
         if not ok:
             self.bad_args += 1
-            self.codec_osc.reject(f"{m.address} needs {n} finite number(s), got {len(args)} argument(s) "
+            self.codec.reject(f"{m.address} needs {n} finite number(s), got {len(args)} argument(s) "
                                   f"{tuple(type(a).__name__ for a in args[:8])}; message dropped")
             return None
         return tuple(NAN if p is None else float(a) for p, a in zip(route.positions, args))

@@ -92,7 +92,7 @@ def parse_sensorserver_types(text: str | Iterable[str], where: str = "sensorserv
     return out
 
 
-class SensorServerPhone(AppDevice):
+class SensorServerPhone(AppDevice[SensorServerCodec]):
     """A phone running the SensorServer app (Android); perfcap connects to its WebSocket server."""
 
     kind = "sensorserver"
@@ -149,10 +149,6 @@ class SensorServerPhone(AppDevice):
         self._touch = 0 if self.types == ["touchscreen"] else None
         return self._declare(decls, self.opts["rate"] or None, SENSORSERVER_CLOCK)
 
-    @property
-    def codec_ss(self) -> SensorServerCodec:
-        return self.codec  # type: ignore[return-value]
-
     def frame_to_readings(self, frame: SensorServerEvent | SensorServerTouch) -> Iterable[Reading]:
         if isinstance(frame, SensorServerTouch):
             if self._touch is None:
@@ -162,7 +158,7 @@ class SensorServerPhone(AppDevice):
         if frame.type is None:
             if len(self._need) != 1:
                 self.bad_events += 1
-                self.codec_ss.reject("sensor event without \"type\" on a multi-sensor connection; dropped")
+                self.codec.reject("sensor event without \"type\" on a multi-sensor connection; dropped")
                 return []
             t = next(iter(self._need))
         else:
@@ -176,7 +172,7 @@ class SensorServerPhone(AppDevice):
         v = frame.values
         if len(v) < need:
             self.bad_events += 1
-            self.codec_ss.reject(f"{t} event with {len(v)} value(s), {need} needed; dropped")
+            self.codec.reject(f"{t} event with {len(v)} value(s), {need} needed; dropped")
             return []
         self.accuracy[self.streams[si].name] = frame.accuracy
         vals: tuple[float, ...]

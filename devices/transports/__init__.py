@@ -47,21 +47,29 @@ def transport_class(scheme: str) -> type[Transport]:
     """The class registered for ``scheme``.
 
     Raises:
-        DeviceUnavailableError: no transport has that scheme, or its module cannot be imported.
+        DeviceUnavailableError: no transport has that scheme, its module cannot be imported, or what
+            it names is not a Transport subclass.
     """
     scheme = scheme.lower()
+    ep = None if scheme in TRANSPORTS else _entry_points().get(scheme)
+    if scheme not in TRANSPORTS and ep is None:
+        raise DeviceUnavailableError(
+            f"unknown transport scheme {scheme!r}; known schemes: {', '.join(known_schemes()) or 'none'}"
+            " (is perfcap installed with 'pip install -e .'?)", source=scheme)
+    where = ":".join(TRANSPORTS[scheme]) if ep is None else f"entry point {ep.value}"
     try:
-        if scheme in TRANSPORTS:
-            mod, cls = TRANSPORTS[scheme]
-            return getattr(importlib.import_module(mod), cls)  # type: ignore[no-any-return]
-        eps = _entry_points()
-        if scheme in eps:
-            return eps[scheme].load()  # type: ignore[no-any-return]
-    except ImportError as exc:
-        raise DeviceUnavailableError(f"the {scheme}:// transport cannot be loaded: {exc}", source=scheme) from exc
-    raise DeviceUnavailableError(
-        f"unknown transport scheme {scheme!r}; known schemes: {', '.join(known_schemes()) or 'none'}"
-        " (is perfcap installed with 'pip install -e .'?)", source=scheme)
+        if ep is None:
+            mod, name = TRANSPORTS[scheme]
+            obj = getattr(importlib.import_module(mod), name)
+        else:
+            obj = ep.load()
+    except (ImportError, AttributeError) as exc:
+        raise DeviceUnavailableError(f"the {scheme}:// transport cannot be loaded from {where}: {exc}",
+                                     source=scheme) from exc
+    if not (isinstance(obj, type) and issubclass(obj, Transport)):
+        raise DeviceUnavailableError(f"the {scheme}:// transport: {where} is {obj!r}, not a Transport subclass",
+                                     source=scheme)
+    return obj
 
 
 def open_transport(url: str, *, clock: Clock = MONOTONIC, extra: Mapping[str, Any] | None = None) -> Transport:

@@ -80,3 +80,23 @@ def test_split_url_and_open_transport():
     assert t.opts["rate"] == 5.0 and t.implied_kind() == "witmotion"
     with pytest.raises(ConfigError):
         split_url("no-scheme")
+
+
+@pytest.mark.parametrize("target", [("devices.options", "Option"), ("devices.options", "resolve_options"),
+                                    ("devices.witmotion", "NoSuchClass"), ("devices.no_such_module", "X")])
+def test_a_registry_entry_that_is_not_a_device_class_is_unavailable(monkeypatch, target):
+    import devices
+
+    monkeypatch.setitem(devices.DEVICE_TYPES, "broken", target)
+    with pytest.raises(DeviceUnavailableError, match="device kind 'broken'"):
+        devices.device_class("broken")
+
+
+@pytest.mark.parametrize("target", [("devices.options", "Option"), ("devices.witmotion", "WitMotionImu"),
+                                    ("devices.transports.base", "Nothing")])
+def test_a_registry_entry_that_is_not_a_transport_class_is_unavailable(monkeypatch, target):
+    import devices.transports as transports
+
+    monkeypatch.setitem(transports.TRANSPORTS, "broken", target)
+    with pytest.raises(DeviceUnavailableError, match="broken://"):
+        transports.transport_class("broken")
