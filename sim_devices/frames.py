@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from capture.errors import ConfigError
 from devices.codecs.witmotion import ACC, ANGLE, GYRO, MAG, TIME, WitMotionCodec
 from sim_devices.motion import WavingMotion
+
+if TYPE_CHECKING:
+    from devices.textline import TextLineLayout
 
 MS_PER_DAY = 86_400_000
 
@@ -122,6 +125,8 @@ class WavingSource(FrameSource):
         self.rng = np.random.default_rng(seed + 1000)
         self.block = max(1, int(round(rate * block_s)))
         self.heading = heading_deg
+        #: the text-line layout its encoder made on first use (kind ``textline``)
+        self.textline_layout: TextLineLayout | None = None
 
     def sense(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the sensor measures at times ``t``: specific force (g), angular rate (deg/s, with the
@@ -144,7 +149,7 @@ class WavingSource(FrameSource):
         from scipy.spatial.transform import Rotation
 
         r = Rotation.from_euler("ZYX", eul_deg[:, ::-1], degrees=True)
-        return r.inv().apply(np.asarray(self.EARTH_FIELD))
+        return np.asarray(r.inv().apply(np.asarray(self.EARTH_FIELD)), np.float64)
 
     def device_options(self) -> dict[str, Any]:
         return ENCODERS[self.kind].device_options(self)
@@ -207,9 +212,9 @@ class _TextLineEncoder(_Encoder):
     def encode(self, src: WavingSource, i0: int, t: np.ndarray) -> list[bytes]:
         from devices.textline import TextLineLayout
 
-        layout = getattr(src, "_textline_layout", None)
+        layout = src.textline_layout
         if layout is None:
-            layout = src._textline_layout = TextLineLayout(self.device_options(src))  # type: ignore[attr-defined]
+            layout = src.textline_layout = TextLineLayout(self.device_options(src))
         acc, gyro, _ = src.sense(t)
         acc = acc * 9.80665
         gyro = np.radians(gyro)

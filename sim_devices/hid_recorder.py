@@ -148,9 +148,9 @@ class HidRecorderResponder(HidResponder):
             raise TraceError("the capture has no report descriptor (R: line); give one with rdesc_file=PATH",
                              path=self.path)
         self.device = dev
-        self.vid = dev.vid  # type: ignore[misc]
-        self.pid = dev.pid  # type: ignore[misc]
-        self.product = dev.name  # type: ignore[misc]
+        self.vid = dev.vid
+        self.pid = dev.pid
+        self.product = dev.name
         if BUSES.get(dev.bus) in ("usb", "bluetooth"):  # the recorded bus wins over the bus option
             self.bus = BUSES[dev.bus]
 

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from capture.clock import MONOTONIC, Clock
-from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
+from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, DeviceUnavailableError, EndOfStream
 from capture.sample import Chunk, Direction
 from devices.options import Option, resolve_options
 from devices.transports.base import Transport
@@ -63,9 +63,10 @@ class HidResponder(abc.ABC):
 
     #: the perfcap device kind it imitates (``simhid://dualsense`` implies ``dualsense@``)
     kind: ClassVar[str] = ""
-    vid: ClassVar[int] = 0
-    pid: ClassVar[int] = 0
-    product: ClassVar[str] = ""
+    #: USB ids and product name (class defaults; a recorded device sets its own)
+    vid: int = 0
+    pid: int = 0
+    product: str = ""
     #: responder-specific URL options
     options: ClassVar[dict[str, Option]] = {}
     #: the motion the responder's reports carry, when it synthesises one
@@ -122,7 +123,10 @@ def responder_class(name: str) -> type[HidResponder]:
         raise ConfigError(f"simhid://{name}: no simulated HID device of that name; known: {', '.join(sorted(RESPONDERS))}"
                           " or simhid:///PATH.hid (a hid-recorder capture)")
     mod, cls = RESPONDERS[name]
-    return getattr(importlib.import_module(mod), cls)  # type: ignore[no-any-return]
+    obj = getattr(importlib.import_module(mod), cls)
+    if not (isinstance(obj, type) and issubclass(obj, HidResponder)):
+        raise DeviceUnavailableError(f"simhid://{name}: {mod}.{cls} is not a HidResponder", source=name)
+    return obj
 
 
 class SimHidTransport(Transport, HidTransportBase):
@@ -215,7 +219,7 @@ class SimHidTransport(Transport, HidTransportBase):
         if not self.opts["unplug_at"] or self._t_first_open is None:
             return False
         s = (now_ns - self._t_first_open) / 1e9
-        return self.opts["unplug_at"] <= s < self.opts["unplug_at"] + self.opts["unplug_for"]
+        return bool(self.opts["unplug_at"] <= s < self.opts["unplug_at"] + self.opts["unplug_for"])
 
     def present(self) -> bool | None:
         if self._unplugged(self._now()):
@@ -305,8 +309,7 @@ class SimHidTransport(Transport, HidTransportBase):
         true, t, data = nxt
         if self.opts["realtime"]:
             if t <= now:
-                self._overflow(now)
-                true, t, data = self._next  # type: ignore[misc]
+                true, t, data = self._overflow(now)
             deadline = now + int(timeout * 1e9)
             if t > deadline:
                 self.clock.sleep_until_ns(deadline)
@@ -324,9 +327,10 @@ class SimHidTransport(Transport, HidTransportBase):
             self.arrival_ns.append(t)
         return Chunk(data, stamp)
 
-    def _overflow(self, now: int) -> None:
+    def _overflow(self, now: int) -> tuple[int, int, bytes]:
         """A reader that fell behind: the OS keeps only the newest ``buffer`` reports that have
-        arrived (Linux hidraw: 64 per reader); older ones are lost, as on a real device, and counted."""
+        arrived (Linux hidraw: 64 per reader); older ones are lost, as on a real device, and counted.
+        Called when the next report is due; returns the oldest one kept, which is then next."""
         due: list[tuple[int, int, bytes]] = []
         later = None
         while True:
@@ -347,7 +351,8 @@ class SimHidTransport(Transport, HidTransportBase):
         self._due.extend(due)
         if later is not None:
             self._due.append(later)
-        self._next = self._due.popleft() if self._due else None
+        nxt = self._next = self._due.popleft()  # the due report that called this, at least, is kept
+        return nxt
 
     def write(self, data: bytes) -> Chunk:
         self._check()

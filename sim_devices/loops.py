@@ -35,13 +35,13 @@ class LoopTake:
         """The noise-free motion at loop phase ``phase`` (1 = one loop), (len(phase), channels)."""
         ph = np.asarray(phase, np.float64)[:, None, None]
         h = np.arange(1, self.amplitudes.shape[1] + 1)[None, None, :]
-        return np.sum(self.amplitudes[None] * np.sin(2 * np.pi * h * ph + self.phases[None]), axis=2)
+        return np.asarray(np.sum(self.amplitudes[None] * np.sin(2 * np.pi * h * ph + self.phases[None]), axis=2))
 
     def phase_at(self, t: np.ndarray) -> np.ndarray:
         """The performer's loop phase at times ``t`` (s): loop index plus the fraction of that loop."""
         t = np.asarray(t, np.float64)
         k = np.clip(np.searchsorted(self.boundaries_s, t, side="right") - 1, 0, len(self.durations_s) - 1)
-        return k + (t - self.boundaries_s[k]) / self.durations_s[k]
+        return np.asarray(k + (t - self.boundaries_s[k]) / self.durations_s[k])
 
 
 def harmonic_shape(channels: int, harmonics: int, rng: np.random.Generator,

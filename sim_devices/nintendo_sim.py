@@ -213,14 +213,14 @@ class _SwitchResponder(HidResponder):
         """The 0x30 report sent at device time ``t`` (s)."""
         ts = t + SAMPLE_PERIOD_S * np.arange(-2, 1)
         acc, gyro = self.mount(*self.truth(ts))
-        imu = tuple(self.true_cal.from_si(tuple(acc[i]), tuple(gyro[i])) for i in range(3))  # type: ignore[arg-type]
+        imu = tuple(self.true_cal.from_si(tuple(acc[i]), tuple(gyro[i])) for i in range(3))
         ph = 2 * math.pi * 0.3 * t
         lst = self.stick_cal[0].raw((0.8 * math.sin(ph), 0.6 * math.cos(ph)))
         rst = self.stick_cal[1].raw((-0.5 * math.cos(ph), 0.9 * math.sin(ph)))
         buttons = (1 << 3) if int(t / 0.25) % 2 else 0
         state = PadState(round(t / SAMPLE_PERIOD_S) & 0xFF, 8, self.connection | (1 if self.bus == "usb" else 0),
                          buttons, lst, rst, 0)
-        return self.codec.encode(FullReport(state, imu, self.bus == "usb"))  # type: ignore[arg-type]
+        return self.codec.encode(FullReport(state, imu, self.bus == "usb"))
 
     def stream(self) -> Iterator[tuple[float, bytes]]:
         self._t = 0.0

@@ -43,7 +43,7 @@ def osc_bundle(messages: Iterable[tuple[str, Sequence[object]]], timetag: int = 
         m = OscMessageBuilder(address=address)
         for a in args:
             m.add_arg(_lists(a))
-        b.add_content(m.build())  # type: ignore[arg-type]
+        b.add_content(m.build())
     dgram = bytearray(b.build().dgram)
     dgram[8:16] = int(timetag).to_bytes(8, "big")
     return bytes(dgram)
@@ -81,9 +81,9 @@ def zigsim_messages(uuid: str, *, accel: Vec | None = None, gravity: Vec | None 
     return out
 
 
-def zigsim_bundle(uuid: str, timetag: int = OSC_IMMEDIATELY, **snapshot: object) -> bytes:
+def zigsim_bundle(uuid: str, timetag: int = OSC_IMMEDIATELY, **snapshot: Any) -> bytes:
     """One ZIG SIM datagram: a bundle of ``zigsim_messages(uuid, **snapshot)``."""
-    return osc_bundle(zigsim_messages(uuid, **snapshot), timetag)  # type: ignore[arg-type]
+    return osc_bundle(zigsim_messages(uuid, **snapshot), timetag)
 
 
 def gyrosc_bundle(values: Mapping[str, Vec], prefix: str = "/gyrosc", timetag: int = OSC_IMMEDIATELY) -> bytes:

@@ -115,13 +115,13 @@ def page_messages(duration_s: float, rate_hz: float = 60.0, *, batch_s: float = 
     sign = -1.0 if invert_acc else 1.0
     user = np.full_like(user, np.nan) if null_acceleration else sign * user
     cols = np.column_stack([t_ms, user, sign * inc, gyro_dps, np.full(n, period)])
-    motion = [tuple(r) for r in cols.tolist()]
-    orientation = []
+    motion_rows: list[tuple[float, ...]] = [tuple(r) for r in cols.tolist()]
+    orientation: list[tuple[float, ...]] = []
     if orientation_every > 0:
         for k in range(0, n, orientation_every):
             alpha = float(eul[k, 2] % 360.0)
             orientation.append((float(t_ms[k]) + 0.5, alpha, float(eul[k, 0]), float(eul[k, 1]), 0.0))
-    touch_rows = []
+    touch_rows: list[tuple[float, ...]] = []
     if touches and n > 4:
         k0 = n // 3
         steps = 6
@@ -130,7 +130,7 @@ def page_messages(duration_s: float, rate_hz: float = 60.0, *, batch_s: float = 
             touch_rows.append((float(t_ms[k0 + j]) + 1.0, float(phase), 7.0, 100.0 + 30.0 * j, 400.0 - 10.0 * j,
                                0.0, 12.5, 12.5))
     rows: list[tuple[float, str, tuple[float, ...]]] = (
-        [(r[0], "m", r) for r in motion] + [(r[0], "o", r) for r in orientation] + [(r[0], "t", r) for r in touch_rows])
+        [(r[0], "m", r) for r in motion_rows] + [(r[0], "o", r) for r in orientation] + [(r[0], "t", r) for r in touch_rows])
     out: list[PageMessage] = []
     if not rows:
         return out

@@ -80,6 +80,7 @@ class ReplayTransport(Transport, HidTransportBase):
         self._timeline: tuple[int, int] | None = None
         #: how late each paced chunk was delivered after its deadline, ns (``RecordedTimeline``)
         self.lateness_ns: deque[int] = deque(maxlen=200_000)
+        self.bus = self._recorded_bus()
 
     def set_timeline(self, start_ns: int, t0_ns: int = 0) -> None:
         """Play recorded time ``t0_ns`` (0: the first chunk) at host time ``start_ns``; several replayed
@@ -101,6 +102,7 @@ class ReplayTransport(Transport, HidTransportBase):
 
     def open(self) -> None:
         self.opens += 1
+        self.bus = self._recorded_bus()
         if self._chunks is None:
             run = self.session.raw_run(self.record.name)
             self._chunks = run
@@ -141,8 +143,8 @@ class ReplayTransport(Transport, HidTransportBase):
             return self.record.descriptors.get(key)
         return versions[min(max(self.opens - 1, 0), len(versions) - 1)]
 
-    @property
-    def bus(self) -> str:  # type: ignore[override]
+    def _recorded_bus(self) -> str:
+        """The bus the current open was on (``bus``, kept up to date by ``open``)."""
         return (self._descriptor("hid.bus") or b"unknown").decode(errors="replace")
 
     def get_feature_report(self, report_id: int, length: int) -> bytes:
@@ -178,7 +180,7 @@ class ReplayTransport(Transport, HidTransportBase):
     @property
     def batches(self) -> bool:
         """As fast as possible with recorded stamps: chunks may be handed over many at a time."""
-        return self.opts["speed"] == 0 and self.opts["stamp"] == "recorded"
+        return bool(self.opts["speed"] == 0 and self.opts["stamp"] == "recorded")
 
     def read_many(self, timeout: float, max_chunks: int, until_ns: int | None = None) -> ChunkRun | list[Chunk]:
         """Up to ``max_chunks`` chunks at once (only when ``batches``; otherwise one, paced).

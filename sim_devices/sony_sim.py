@@ -20,7 +20,7 @@ Options:
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -154,6 +154,11 @@ def pad_motion(motion: WavingMotion, t: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.radians(remap(gyro_dps)), remap(acc_g) * G
 
 
+def _xyz(values: Iterable[int]) -> tuple[int, int, int]:
+    x, y, z = values
+    return x, y, z
+
+
 class _SonyResponder(HidResponder):
     model: ClassVar[str] = ""
     codec_cls: ClassVar[type[DualShock4Codec | DualSenseCodec]]
@@ -183,12 +188,12 @@ class _SonyResponder(HidResponder):
         r = self.rng
         if which == "degenerate":
             return ImuCalibration((0, 0, 0), (0, 0, 0), (0, 0, 0), 540, 540, (0, 0, 0), (0, 0, 0))
-        bias = tuple(int(v) for v in r.integers(-15, 16, 3))
-        plus = tuple(int(v) for v in r.integers(8600, 9250, 3))
-        minus = tuple(-p + int(v) for p, v in zip(plus, r.integers(-40, 41, 3)))
-        accp = tuple(int(v) for v in r.integers(8050, 8450, 3))
-        accm = tuple(-a + int(v) for a, v in zip(accp, r.integers(-100, 101, 3)))
-        return ImuCalibration(bias, plus, minus, 540, 540, accp, accm)  # type: ignore[arg-type]
+        bias = _xyz(int(v) for v in r.integers(-15, 16, 3))
+        plus = _xyz(int(v) for v in r.integers(8600, 9250, 3))
+        minus = _xyz(-p + int(v) for p, v in zip(plus, r.integers(-40, 41, 3), strict=True))
+        accp = _xyz(int(v) for v in r.integers(8050, 8450, 3))
+        accm = _xyz(-a + int(v) for a, v in zip(accp, r.integers(-100, 101, 3), strict=True))
+        return ImuCalibration(bias, plus, minus, 540, 540, accp, accm)
 
     def truth(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """True gyro (rad/s) and acceleration (m/s^2) in the pad frame at device times ``t``."""
@@ -266,7 +271,7 @@ class DualShock4Responder(_SonyResponder):
     def __init__(self, opts: Mapping[str, Any], address: str = "") -> None:
         super().__init__(opts, address)
         if self.opts.get("model") == "zct1":
-            self.pid = 0x05C4  # type: ignore[misc]
+            self.pid = 0x05C4
 
     def report_descriptor(self) -> bytes:
         return ds4_descriptor(self.bus)

@@ -119,7 +119,7 @@ class SynthTransport(Transport):
         if not o["unplug_at"] or self._t0 is None:
             return False
         s = (now_ns - self._t0) / 1e9
-        return o["unplug_at"] <= s < o["unplug_at"] + o["unplug_for"]
+        return bool(o["unplug_at"] <= s < o["unplug_at"] + o["unplug_for"])
 
     def open(self) -> None:
         now = self.clock.now_ns()
@@ -216,7 +216,8 @@ class SynthTransport(Transport):
             if self._unplugged(now):
                 self._open = False
                 # what was taken before the unplug but not yet delivered is lost with the device
-                cut = self._t0 + int(self.opts["unplug_at"] * 1e9)  # type: ignore[operator]
+                assert self._t0 is not None  # set at the first open; _unplugged is False before it
+                cut = self._t0 + int(self.opts["unplug_at"] * 1e9)
                 self._queue = deque(e for e in self._queue if e[2] >= cut)
                 raise DeviceIOError(f"{self.url}: device disconnected (simulated unplug)", source=self.url)
             deadline = now + int(timeout * 1e9)

@@ -186,7 +186,7 @@ class ImuCalibration:
         if len(b) < 24:
             raise ValueError(f"IMU calibration needs 24 bytes, got {len(b)}")
         v = struct.unpack("<12h", bytes(b[:24]))
-        return cls(v[0:3], v[3:6], v[6:9], v[9:12])  # type: ignore[arg-type]
+        return cls(v[0:3], v[3:6], v[6:9], v[9:12])
 
     def to_bytes(self) -> bytes:
         return struct.pack("<12h", *self.acc_origin, *self.acc_sens, *self.gyro_origin, *self.gyro_sens)
@@ -198,11 +198,13 @@ class ImuCalibration:
 
     def acc_scale(self) -> tuple[float, float, float]:
         """m/s^2 per count, per axis: 4 g / (acc_sens - acc_origin)."""
-        return tuple(4.0 * G / (s - o) for s, o in zip(self.acc_sens, self.acc_origin))  # type: ignore[return-value]
+        x, y, z = (4.0 * G / (s - o) for s, o in zip(self.acc_sens, self.acc_origin, strict=True))
+        return x, y, z
 
     def gyro_scale(self) -> tuple[float, float, float]:
         """rad/s per count, per axis: 936 deg/s / (gyro_sens - gyro_origin)."""
-        return tuple(math.radians(936.0 / (s - o)) for s, o in zip(self.gyro_sens, self.gyro_origin))  # type: ignore[return-value]
+        x, y, z = (math.radians(936.0 / (s - o)) for s, o in zip(self.gyro_sens, self.gyro_origin, strict=True))
+        return x, y, z
 
     def to_si(self, raw: tuple[int, ...]) -> tuple[float, float, float, float, float, float]:
         """Raw ``(ax, ay, az, gx, gy, gz)`` counts to ``(m/s^2 x3, rad/s x3)``."""
@@ -384,7 +386,7 @@ class SwitchCodec(Codec):
             if rid == IN_FULL:
                 v = _IMU.unpack_from(data, 13)
                 self.counts.full += 1
-                return FullReport(state, (v[0:6], v[6:12], v[12:18]), usb)  # type: ignore[arg-type]
+                return FullReport(state, (v[0:6], v[6:12], v[12:18]), usb)
             self.counts.replies += 1
             return SubcommandReply(state, data[13], data[14], bytes(data[15:REPORT_LEN]), usb)
         if rid == IN_USB_REPLY:

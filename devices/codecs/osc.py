@@ -254,7 +254,7 @@ class OscCodec(MessageCodec):
             return self._message(frame.messages[0]).dgram
         b = OscBundleBuilder(IMMEDIATELY)
         for m in frame.messages:
-            b.add_content(self._message(m))  # type: ignore[arg-type]
+            b.add_content(self._message(m))
         dgram = bytearray(b.build().dgram)
         tt = OSC_IMMEDIATELY if frame.timetag is None else frame.timetag
         if not 0 <= tt < 1 << 64:

@@ -127,6 +127,7 @@ class TextLineCodec(Codec):
         self._kv = {c.encode("ascii"): i for i, c in enumerate(self.fields)}
         self._all = (1 << len(self.fields)) - 1
         self._tbit = 0 if time_field is None else 1 << time_field
+        self._time_key = None if time_field is None else self.fields[time_field]
         self._discard = False  # dropping the rest of an over-long line, up to its newline
         self.last_format: str | None = None  # csv or kv: the form of the last line parsed
         self._fast = fmt != KV and bool(self.columns) and len(self._csv_idx) == self._ncols
@@ -273,7 +274,7 @@ class TextLineCodec(Codec):
                 self._skip_line(raw, "line without any configured key")
                 return
             if self._tbit and not present & self._tbit:
-                self._reject(raw, off, f"no time key {self.fields[self.time_field]!r}")  # type: ignore[index]
+                self._reject(raw, off, f"no time key {self._time_key!r}")
                 return
         tf = self.time_field
         if tf is not None:

@@ -36,11 +36,11 @@ class WitPacket(NamedTuple):
     data: bytes
 
     def words(self) -> tuple[int, int, int, int]:
-        return _words.unpack(self.data)  # type: ignore[return-value]
+        return _words.unpack(self.data)
 
     def time_fields(self) -> tuple[int, int, int, int, int, int, int]:
         """(YY, MM, DD, hh, mm, ss, ms) of a time packet."""
-        return _time.unpack(self.data)  # type: ignore[return-value]
+        return _time.unpack(self.data)
 
     @classmethod
     def from_words(cls, type_: int, w: tuple[int, int, int, int]) -> WitPacket:

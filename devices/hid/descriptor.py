@@ -245,6 +245,12 @@ class DescriptorLayout:
         return out
 
 
+def _collection(c: Any) -> tuple[int, int, int]:
+    """hid-tools' (application, physical, logical) collection counters of a field as ints."""
+    a, p, lg = (int(x) for x in (c or (0, 0, 0)))
+    return a, p, lg
+
+
 def _layout_of(report: Any, *, with_id: bool) -> ReportLayout:
     fields: list[FieldLayout] = []
     for f in report.fields:
@@ -269,7 +275,7 @@ def _layout_of(report: Any, *, with_id: bool) -> ReportLayout:
             logical_min=lmin, logical_max=lmax, physical_min=pmin * factor, physical_max=pmax * factor,
             unit=unit or "count", scale=scale, offset=pmin * factor, is_array=is_array,
             relative=bool(int(f.type) & 0x04), usages=usages, application=int(f.application or 0),
-            collection=tuple(int(c) for c in (f.collection or (0, 0, 0))),  # type: ignore[arg-type]
+            collection=_collection(f.collection),
             logical_usage=int(f.logical or 0)))
     rid = int(report.report_ID)
     numbered = rid >= 0
@@ -369,7 +375,8 @@ class HidReportCodec(Codec):
         return [(rep, rep.decode(data))]
 
     def encode(self, frame: Any) -> bytes:
-        rep, values = frame
+        rep: ReportLayout = frame[0]
+        values = frame[1]
         if isinstance(values, Mapping):
             return rep.encode(values)
         return rep.encode(dict(enumerate(values)))
