@@ -17,13 +17,15 @@ import importlib
 import re
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
-from typing import Any
-from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceUnavailableError
 from devices.base import Device, DeviceReader, DeviceState, ReconnectPolicy
-from devices.transports import open_transport, split_url, transport_class, known_schemes
+from devices.transports import known_schemes, open_transport, split_url, transport_class
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 #: kind -> (module, class). Out-of-tree kinds use the ``perfcap.devices`` entry-point group.
 DEVICE_TYPES: dict[str, tuple[str, str]] = {

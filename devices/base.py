@@ -16,11 +16,9 @@ import math
 import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, NamedTuple, TypeVar
-from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from capture.bus import SampleBus
 from capture.clock import MONOTONIC, Clock
 from capture.clocksync import ClockSync
 from capture.errors import CaptureError, DeviceError, EndOfStream, ProtocolError
@@ -80,7 +78,11 @@ class DeviceStats:
 #: the codec class of a device kind (``Device[WitMotionCodec]``), so ``device.codec`` has its type; a
 #: bare ``Device`` is ``Device[Codec]`` (a TypeVar default: PEP 696, in ``typing`` from Python 3.13)
 if TYPE_CHECKING:
+    from collections.abc import Iterable, Mapping
+
     import typing_extensions
+
+    from capture.bus import SampleBus
 
     CodecT = typing_extensions.TypeVar("CodecT", bound=Codec, default=Codec)
 else:
@@ -400,7 +402,7 @@ class Device(abc.ABC, Generic[CodecT]):
                 for si in members:
                     if si in groups:
                         times[si] = ([], [])
-                for r, dv, b in zip(sel, devs, bus):  # noqa: B905 - equal lengths, hot path
+                for r, dv, b in zip(sel, devs, bus):
                     tl = times[r.stream]
                     tl[0].append(dv)
                     tl[1].append(b)
@@ -439,7 +441,7 @@ class Device(abc.ABC, Generic[CodecT]):
         st = self.stats
         append = out.append
         # equal lengths; zip's strict keyword would cost 0.15 us a call on the live path
-        for r, dv, b in zip(readings, devs, bus):  # noqa: B905
+        for r, dv, b in zip(readings, devs, bus):
             si = r.stream
             if epochs[si] != epoch:
                 epochs[si] = epoch
@@ -681,7 +683,7 @@ class DeviceReader:
             dev.state = DeviceState.FAILED
             log.error("device %s failed: %s", dev.name, exc)
             self._event(EventKind.FAILED, str(exc))
-        except Exception as exc:  # noqa: BLE001 - a bug in one device must not take the others down
+        except Exception as exc:
             self.error = exc
             dev.state = DeviceState.FAILED
             log.error("device %s stopped by an internal error: %s: %s (rerun with -vv for the traceback)",
@@ -695,7 +697,7 @@ class DeviceReader:
                 log.warning("device %s: close failed: %s", dev.name, exc)
             try:
                 self.bus.publish_many(dev.clock_states())
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("device %s: final clock state not published", dev.name)
 
     def _reconnect(self, exc: BaseException, first: bool = False) -> bool:

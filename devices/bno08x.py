@@ -31,8 +31,7 @@ instead of 1 s), so a chunk whose newest frame arrives that late starts a new cl
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -40,6 +39,9 @@ from capture.sample import ChunkRun, DeviceClockSpec, StreamInfo
 from devices.base import BatchReadings, Device, Reading, StreamReadings
 from devices.codecs.bno08x_rvc import FRAME_LEN, Bno08xRvcCodec, RvcFrame
 from devices.options import Option
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 G = 9.80665
 RATE_HZ = 100.0

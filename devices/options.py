@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
-from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from capture.errors import ConfigError
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
@@ -60,7 +62,7 @@ class Option:
             raise ConfigError(f"{where}: option {key}={value!r} is not {self.form()}", source=where) from None
         if self.choices and v not in self.choices:
             raise ConfigError(f"{where}: option {key}={value!r} must be one of {self.form()}", source=where)
-        if self.min is not None and v < self.min or self.max is not None and v > self.max:
+        if (self.min is not None and v < self.min) or (self.max is not None and v > self.max):
             rng = (f"within [{self.min:g}, {self.max:g}]" if self.min is not None and self.max is not None
                    else f"at least {self.min:g}" if self.min is not None else f"at most {self.max:g}")
             raise ConfigError(f"{where}: option {key}={value!r} must be {rng}", source=where)

@@ -41,8 +41,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
-from collections.abc import Iterable, Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
 from capture.sample import Chunk, DeviceClockSpec, StreamInfo
@@ -56,7 +55,11 @@ from devices.codecs.phone_json import (
     SensorLoggerMessage,
 )
 from devices.options import Option
-from devices.transports.base import Transport
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Mapping
+
+    from devices.transports.base import Transport
 
 log = logging.getLogger(__name__)
 

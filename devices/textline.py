@@ -35,9 +35,8 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -53,6 +52,9 @@ from devices.codecs.textline import (
     TextLineCodec,
 )
 from devices.options import Option, resolve_options
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Mapping, Sequence
 
 G = 9.80665
 DEG = math.pi / 180.0

@@ -18,7 +18,7 @@ the sensor) it is the device clock, wrapping at midnight.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from devices.codecs.witmotion import (
     WitPacket,
 )
 from devices.options import Option
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 G = 9.80665
 ACC_SCALE = 16.0 / 32768.0 * G
@@ -238,4 +241,4 @@ def encode_cycle(codec: WitMotionCodec, acc_g: tuple[float, float, float], gyro_
     return b"".join(codec.encode(p) for p in pk), pk
 
 
-__all__ = ["WitMotionImu", "encode_cycle", "TIME"]
+__all__ = ["TIME", "WitMotionImu", "encode_cycle"]

@@ -11,7 +11,6 @@ chunks are finite (and may loop).
 from __future__ import annotations
 
 import abc
-from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -21,6 +20,8 @@ from devices.codecs.witmotion import ACC, ANGLE, GYRO, MAG, TIME, WitMotionCodec
 from sim_devices.motion import WavingMotion
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     from devices.textline import TextLineLayout
 
 MS_PER_DAY = 86_400_000
@@ -278,4 +279,4 @@ class SessionSource(FrameSource):
             offset += span
 
 
-__all__ = ["FrameSource", "WavingSource", "SessionSource", "witmotion_wire", "ENCODERS"]
+__all__ = ["ENCODERS", "FrameSource", "SessionSource", "WavingSource", "witmotion_wire"]

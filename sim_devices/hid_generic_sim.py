@@ -14,8 +14,7 @@ host sets it, wheel and AC Pan are sent in 1/8 detents.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.errors import ConfigError
 from devices.hid.descriptor import (
@@ -44,6 +43,9 @@ from devices.hid.descriptor import (
 from devices.options import Option
 from sim_devices import evemu
 from sim_devices.hid_sim import HidResponder, trace_path
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator, Mapping
 
 
 def _field(rep: ReportLayout, usage: int, nth: int = 0) -> FieldLayout:
@@ -229,7 +231,7 @@ class PenResponder(_LayoutResponder):
         return self.report.encode({self.f[k].index: v for k, v in logical.items()})
 
     def _new_state(self) -> dict[str, Any]:
-        return {k: 0 for k in self.f}
+        return dict.fromkeys(self.f, 0)
 
     def _frame_reports(self, state: dict[str, Any], events: list[tuple[int, int, int]]) -> list[bytes]:
         axes = {evemu.ABS_X: "x", evemu.ABS_Y: "y", evemu.ABS_PRESSURE: "pressure", evemu.ABS_TILT_X: "tilt_x",

@@ -18,13 +18,15 @@ descriptor (and ``I:``/``N:``) from another capture named by the option ``rdesc_
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capture.errors import TraceError
 from devices.options import Option
 from sim_devices.hid_sim import HidResponder, trace_path
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator, Mapping
 
 BUSES = {3: "usb", 5: "bluetooth", 0x18: "i2c", 0x1C: "spi"}
 _HEX_ONLY = re.compile(r"^(?:[0-9a-fA-F]{2}\s*)+$")

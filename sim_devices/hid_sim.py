@@ -22,7 +22,6 @@ import abc
 import collections
 import importlib
 import os
-from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -35,6 +34,8 @@ from devices.transports.base import Transport
 from devices.transports.hid import HidTransportBase
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator, Mapping
+
     from devices.transports.base import SimulatorTruth
     from sim_devices.motion import WavingMotion
 

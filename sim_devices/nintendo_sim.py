@@ -21,8 +21,7 @@ nominal calibration). ``drop_every=N`` drops every Nth 0x30 report (a gap, not a
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -38,6 +37,9 @@ from devices.codecs.nintendo import (
 from devices.options import Option
 from sim_devices.hid_sim import HidResponder
 from sim_devices.motion import G, WavingMotion
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator, Mapping
 
 REPORT_PERIOD_S = 0.015
 SAMPLE_PERIOD_S = 0.005

@@ -19,10 +19,9 @@ from __future__ import annotations
 import json
 import math
 import random
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -36,6 +35,9 @@ from devices.codecs.phone_json import (
     SensorLoggerMessage,
 )
 from sim_devices.motion import G, phone_motion
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 _PAGE = PageCodec()
 _SL = SensorLoggerCodec()

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -30,6 +29,8 @@ from devices.transports.base import Transport
 from devices.transports.hid import HidTransportBase
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from devices.transports.base import BatchSource, RecordedTimeline
 
 log = logging.getLogger(__name__)

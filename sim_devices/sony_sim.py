@@ -20,8 +20,7 @@ Options:
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -44,6 +43,9 @@ from devices.codecs.sony import (
 from devices.options import Option
 from sim_devices.hid_sim import HidResponder
 from sim_devices.motion import G, WavingMotion
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Iterator, Mapping
 
 RATE_HZ = 250.0
 BLOCK = 250

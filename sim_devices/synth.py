@@ -17,21 +17,22 @@ reading so tests can measure clock-sync error end to end. What the simulator kno
 from __future__ import annotations
 
 from collections import deque
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from typing import TYPE_CHECKING, Any
-from collections.abc import Mapping
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
 from capture.sample import Chunk
 from devices.codecs.witmotion import WitMotionCodec
-from sim_devices.frames import witmotion_wire
 from devices.options import Option
 from devices.transports.base import Transport
+from sim_devices.frames import witmotion_wire
 from sim_devices.motion import WavingMotion
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from devices.transports.base import SimulatorTruth
 
 KINDS = {"imu": "witmotion"}

@@ -21,7 +21,7 @@ is the inverse of ``feed``, used by simulators and round-trip tests.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from devices.codecs.textline import (
     CSV,
@@ -30,6 +30,9 @@ from devices.codecs.textline import (
     TextLineCodec,
     format_number,
 )
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 #: HyperIMU sensors a row can carry (3 values each), with ``_`` for a sensor whose 3 columns are
 #: read past. ``magnetic_field`` is an alias of ``magnetometer``.

@@ -27,8 +27,7 @@ is the inverse of ``feed``, used by simulators and round-trip tests.
 from __future__ import annotations
 
 import struct
-from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from pythonosc import osc_bundle, osc_message
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
@@ -36,6 +35,9 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.parsing import osc_types
 
 from devices.codecs.base import BadMessage, MessageCodec
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 #: Bounds of one OSC datagram.
 OSC_MAX_DATAGRAM = 65536       # a UDP payload cannot be larger
@@ -120,7 +122,7 @@ def _check_osc_message(m: bytes) -> None:
         tags = ""
         if idx < len(m):
             tags, _ = osc_types.get_string(m, idx)
-    except Exception as exc:  # noqa: BLE001 - python-osc raises ParseError, IndexError, UnicodeDecodeError
+    except Exception as exc:
         raise _Reject(f"unreadable address or type tags ({exc})") from None
     if len(address) > OSC_MAX_ADDRESS:
         raise _Reject(f"address longer than {OSC_MAX_ADDRESS} characters")
@@ -221,7 +223,7 @@ class OscCodec(MessageCodec):
             messages = _walk(root)
         except _Reject:
             raise
-        except Exception as exc:  # noqa: BLE001 - a foreign parser: whatever it raises is bad input
+        except Exception as exc:
             raise _Reject(f"python-osc cannot parse it ({type(exc).__name__}: {exc})") from None
         return [OscFrame(tuple(messages), timetag)]
 

@@ -74,7 +74,7 @@ def _unit(unit_value: int, exponent: int) -> tuple[str, float]:
         return "", 1.0
     try:
         u = hh.HidUnit.from_value(unit_value)
-    except Exception:  # noqa: BLE001 - hid-tools chokes on some codes (after Push it can pass negatives)
+    except Exception:
         return f"unit 0x{unit_value & 0xFFFFFFFF:x}", 10.0 ** exponent
     if u is None:
         return "", 1.0
@@ -310,7 +310,7 @@ def parse_descriptor(rdesc: bytes, source: str = "report descriptor") -> Descrip
         for rep in rd.feature_reports.values():
             lay = _layout_of(rep, with_id=True)
             multipliers += [(lay, f) for f in lay.fields if f.usage == GD_RES_MULTIPLIER]
-    except Exception as exc:  # noqa: BLE001 - what hid-tools parsed but cannot lay out is a bad descriptor too
+    except Exception as exc:
         raise ConfigError(f"{source}: the HID report descriptor ({len(data)} bytes) cannot be laid out:"
                           f" {type(exc).__name__}: {exc}", source=source) from exc
     apps = tuple(dict.fromkeys(r.application for r in reports.values()))

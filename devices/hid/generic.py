@@ -22,10 +22,9 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capture.errors import CaptureError, ConfigError, DeviceInitError
-from capture.sample import StreamInfo
 from devices.base import Reading
 from devices.hid.base import HidDevice
 from devices.hid.descriptor import (
@@ -59,6 +58,9 @@ from devices.hid.descriptor import (
 )
 from devices.options import Option
 from devices.transports.hid import HidTransportBase
+
+if TYPE_CHECKING:
+    from capture.sample import StreamInfo
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +227,7 @@ class GenericHid(HidDevice[HidReportCodec]):
             if i is None:
                 return lambda v: NAN
             f = F[i]
-            if how == "pos" and f.unit != "m" or how == "norm":
+            if (how == "pos" and f.unit != "m") or how == "norm":
                 return lambda v: f.normalised(v[i])
             if how == "bool":
                 return lambda v: 1.0 if v[i] else 0.0

@@ -39,8 +39,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.errors import DeviceInitError, DeviceTimeoutError
 from capture.sample import DeviceClockSpec, DeviceDescriptor, StreamInfo
@@ -55,6 +54,9 @@ from devices.codecs.nintendo import (
 )
 from devices.hid.base import HidDevice
 from devices.options import Option
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 log = logging.getLogger(__name__)
 

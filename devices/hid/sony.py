@@ -38,8 +38,7 @@ quarter of a wrap (87 ms) shows as a clock reset. DualSense: the u32 sensor time
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.errors import (
     DeviceInitError,
@@ -69,6 +68,9 @@ from devices.codecs.sony import (
 )
 from devices.hid.base import HidDevice
 from devices.options import Option
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 log = logging.getLogger(__name__)
 

@@ -11,12 +11,14 @@ layer finds in decoded frames are reported like the codec's own.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capture.sample import Chunk, DeviceClockSpec, DeviceEvent, EventKind, StreamInfo
 from devices.base import CodecT, Device
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 G0 = 9.80665
 NAN = float("nan")

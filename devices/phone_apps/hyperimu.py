@@ -19,8 +19,7 @@ at arrival).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.errors import ConfigError
 from capture.sample import DeviceClockSpec, StreamInfo
@@ -41,6 +40,9 @@ from devices.phone_apps.base import (
     StreamDecl,
     quat_from_vector,
 )
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
 
 HYPERIMU_CLOCK = DeviceClockSpec(tick_hz=1000.0)
 

@@ -53,13 +53,11 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
-from capture.sample import StreamInfo
 from devices.base import Reading
 from devices.codecs.osc import OscCodec, OscFrame, OscMsg
 from devices.options import Option
@@ -77,7 +75,12 @@ from devices.phone_apps.base import (
     NameTally,
     StreamDecl,
 )
-from devices.transports.base import Transport
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Mapping
+
+    from capture.sample import StreamInfo
+    from devices.transports.base import Transport
 
 log = logging.getLogger(__name__)
 

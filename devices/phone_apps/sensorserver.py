@@ -21,8 +21,7 @@ nominal rate. ``SensorServerPhone.ws_path(types)`` builds the app's WebSocket pa
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
@@ -42,8 +41,12 @@ from devices.phone_apps.base import (
     StreamDecl,
     quat_from_vector,
 )
-from devices.transports.base import Transport
 from devices.transports.sensorserver import SENSORSERVER_CLOSE_CODES, sensorserver_path
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Mapping
+
+    from devices.transports.base import Transport
 
 log = logging.getLogger(__name__)
 

@@ -11,12 +11,14 @@ import functools
 import importlib
 import logging
 from importlib.metadata import entry_points
-from typing import Any
-from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceUnavailableError
 from devices.transports.base import Transport, split_url
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 log = logging.getLogger(__name__)
 
@@ -86,5 +88,12 @@ def open_transport(url: str, *, clock: Clock = MONOTONIC, extra: Mapping[str, An
     return cls(address, opts, clock=clock)
 
 
-__all__ = ["TRANSPORTS", "Transport", "open_transport", "split_url", "transport_class", "known_schemes",
-           "ConfigError"]
+__all__ = [
+    "TRANSPORTS",
+    "ConfigError",
+    "Transport",
+    "known_schemes",
+    "open_transport",
+    "split_url",
+    "transport_class",
+]

@@ -18,9 +18,8 @@ import importlib
 import os
 import re
 import sys
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import (
@@ -33,6 +32,9 @@ from capture.errors import (
 from capture.sample import Chunk
 from devices.options import Option
 from devices.transports.base import Transport
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 
 class HidTransportBase(abc.ABC):

@@ -18,13 +18,15 @@ from __future__ import annotations
 import collections
 import logging
 import threading
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
-from capture.sample import Chunk
-from devices.options import Option
 from devices.transports.base import Transport
+
+if TYPE_CHECKING:
+    from capture.sample import Chunk
+    from devices.options import Option
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 from urllib.parse import quote
 
 from capture.clock import MONOTONIC, Clock
@@ -21,6 +20,9 @@ from capture.errors import ConfigError, DeviceInitError, DeviceIOError, DeviceNo
 from capture.sample import Chunk, Direction
 from devices.options import Option
 from devices.transports.base import Transport
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 log = logging.getLogger(__name__)
 

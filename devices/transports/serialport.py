@@ -25,17 +25,19 @@ import select
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
-from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import serial
 from serial.tools import list_ports
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceInitError, DeviceIOError, DeviceNotFoundError
-from capture.sample import Chunk, DeviceIdentity, Direction
+from capture.sample import Chunk, Direction
 from devices.options import Option
 from devices.transports.base import Transport
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 log = logging.getLogger(__name__)
 
@@ -258,9 +260,9 @@ class SerialTransport(Transport):
             return
         target = self._target()
         o = self.opts
-        kw: dict[str, Any] = dict(baudrate=o["baud"], bytesize=o["bytesize"], parity=o["parity"],
-                                  stopbits=o["stopbits"] if o["stopbits"] != 1.5 else serial.STOPBITS_ONE_POINT_FIVE,
-                                  rtscts=o["rtscts"], timeout=0.1, write_timeout=1.0, do_not_open=True)
+        kw: dict[str, Any] = {"baudrate": o["baud"], "bytesize": o["bytesize"], "parity": o["parity"],
+                                  "stopbits": o["stopbits"] if o["stopbits"] != 1.5 else serial.STOPBITS_ONE_POINT_FIVE,
+                                  "rtscts": o["rtscts"], "timeout": 0.1, "write_timeout": 1.0, "do_not_open": True}
         if o["stopbits"] in (1.0, 2.0):
             kw["stopbits"] = int(o["stopbits"])
         try:
@@ -391,5 +393,13 @@ class LoopTransport(SerialTransport):
         return "loop://"
 
 
-__all__ = ["SerialTransport", "SerialPortInfo", "KnownAdapter", "KNOWN_ADAPTERS", "list_serial_ports",
-           "resolve_usb_address", "port_info", "known_adapter"]
+__all__ = [
+    "KNOWN_ADAPTERS",
+    "KnownAdapter",
+    "SerialPortInfo",
+    "SerialTransport",
+    "known_adapter",
+    "list_serial_ports",
+    "port_info",
+    "resolve_usb_address",
+]

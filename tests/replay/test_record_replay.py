@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.clock import ManualClock
-from capture.errors import ConfigError, EndOfStream, SessionError
 from capture.app.orchestrator import Capture
 from capture.app.replay import ReplayVerifier, replay_session
+from capture.clock import ManualClock
+from capture.errors import ConfigError, EndOfStream, SessionError
 from capture.session import SessionReader
 from devices import open_device
 
@@ -54,7 +54,7 @@ def test_verifier_detects_a_difference(session_path):
 
 def test_replay_transport_paces_by_recorded_time_at_any_speed(session_path):
     record(session_path, [f"a=synth://imu?rate=100&jitter_ms=3&{FAST}"])
-    chunks = [c for c in SessionReader(session_path).raw_chunks("a")]
+    chunks = list(SessionReader(session_path).raw_chunks("a"))
     for speed in (1.0, 4.0, 0.5):
         clk = ManualClock(50_000_000_000)
         d = open_device(f"replay://{session_path}?speed={speed}", clock=clk)

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError
 from capture.app.orchestrator import Capture
 from capture.app.replay import replay_session
+from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError
 from capture.session import SessionReader
 from devices import open_device
 from devices.base import ReconnectPolicy
@@ -30,7 +30,7 @@ def test_reports_are_paced_on_a_virtual_clock_in_order_with_their_schedule():
     while True:
         try:
             c = t.read(0.0)
-        except Exception:  # noqa: BLE001 - EndOfStream at the end of the second
+        except Exception:
             break
         if c is not None:
             stamps.append(c.t_ns)
