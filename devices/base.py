@@ -402,7 +402,7 @@ class Device(abc.ABC, Generic[CodecT]):
                 for si in members:
                     if si in groups:
                         times[si] = ([], [])
-                for r, dv, b in zip(sel, devs, bus):
+                for r, dv, b in zip(sel, devs, bus):  # noqa: B905 - equal lengths, hot path
                     tl = times[r.stream]
                     tl[0].append(dv)
                     tl[1].append(b)
@@ -441,7 +441,7 @@ class Device(abc.ABC, Generic[CodecT]):
         st = self.stats
         append = out.append
         # equal lengths; zip's strict keyword would cost 0.15 us a call on the live path
-        for r, dv, b in zip(readings, devs, bus):
+        for r, dv, b in zip(readings, devs, bus):  # noqa: B905
             si = r.stream
             if epochs[si] != epoch:
                 epochs[si] = epoch
@@ -683,7 +683,7 @@ class DeviceReader:
             dev.state = DeviceState.FAILED
             log.error("device %s failed: %s", dev.name, exc)
             self._event(EventKind.FAILED, str(exc))
-        except Exception as exc:
+        except Exception as exc:  # a bug in one device must not take the others down
             self.error = exc
             dev.state = DeviceState.FAILED
             log.error("device %s stopped by an internal error: %s: %s (rerun with -vv for the traceback)",

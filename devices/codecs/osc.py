@@ -122,7 +122,7 @@ def _check_osc_message(m: bytes) -> None:
         tags = ""
         if idx < len(m):
             tags, _ = osc_types.get_string(m, idx)
-    except Exception as exc:
+    except Exception as exc:  # python-osc raises ParseError, IndexError, UnicodeDecodeError
         raise _Reject(f"unreadable address or type tags ({exc})") from None
     if len(address) > OSC_MAX_ADDRESS:
         raise _Reject(f"address longer than {OSC_MAX_ADDRESS} characters")
@@ -223,7 +223,7 @@ class OscCodec(MessageCodec):
             messages = _walk(root)
         except _Reject:
             raise
-        except Exception as exc:
+        except Exception as exc:  # a foreign parser: whatever it raises is bad input
             raise _Reject(f"python-osc cannot parse it ({type(exc).__name__}: {exc})") from None
         return [OscFrame(tuple(messages), timetag)]
 

@@ -74,7 +74,7 @@ def _unit(unit_value: int, exponent: int) -> tuple[str, float]:
         return "", 1.0
     try:
         u = hh.HidUnit.from_value(unit_value)
-    except Exception:
+    except Exception:  # hid-tools chokes on some codes (after Push it can pass negatives)
         return f"unit 0x{unit_value & 0xFFFFFFFF:x}", 10.0 ** exponent
     if u is None:
         return "", 1.0
@@ -296,7 +296,7 @@ def parse_descriptor(rdesc: bytes, source: str = "report descriptor") -> Descrip
         raise ConfigError(f"{source}: empty HID report descriptor", source=source)
     try:
         rd = hh.ReportDescriptor.from_bytes(list(data))
-    except Exception as exc:  # hid-tools raises KeyError, IndexError, ParseError, AssertionError...
+    except Exception as exc:  # what hid-tools parsed but cannot lay out is a bad descriptor too  # hid-tools raises KeyError, IndexError, ParseError, AssertionError...
         raise ConfigError(f"{source}: hid-tools cannot parse the HID report descriptor ({len(data)} bytes):"
                           f" {type(exc).__name__}: {exc}", source=source) from exc
     if not rd.input_reports:

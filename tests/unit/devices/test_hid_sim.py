@@ -30,7 +30,7 @@ def test_reports_are_paced_on_a_virtual_clock_in_order_with_their_schedule():
     while True:
         try:
             c = t.read(0.0)
-        except Exception:
+        except Exception:  # EndOfStream at the end of the second
             break
         if c is not None:
             stamps.append(c.t_ns)
