@@ -31,7 +31,7 @@ instead of 1 s), so a chunk whose newest frame arrives that late starts a new cl
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -60,7 +60,7 @@ class Bno08xRvcImu(Device[Bno08xRvcCodec]):
     kind = "bno08x_rvc"
     description = "BNO08x IMU in UART-RVC mode (19-byte 0xAAAA frames at 100 Hz, 115200 baud)"
     codec_cls = Bno08xRvcCodec
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "device_clock": Option(bool, True, "use the 8-bit frame index as a 100 Hz device clock (wraps every 2.56 s)"),
     }
 

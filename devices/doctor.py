@@ -73,7 +73,8 @@ def _node_access(path: str) -> tuple[bool, str]:
     if os.access(path, os.R_OK | os.W_OK):
         return True, ""
     st = os.stat(path)
-    return False, f"{path} is not readable and writable by you (mode {st.st_mode & 0o777:o}, uid {st.st_uid}, gid {st.st_gid})"
+    return False, (f"{path} is not readable and writable by you (mode {st.st_mode & 0o777:o}, uid {st.st_uid},"
+                   f" gid {st.st_gid})")
 
 
 def _usb_devices() -> tuple[list[dict[str, Any]], str]:
@@ -125,7 +126,8 @@ def diagnose() -> Report:
     # known controllers seen on USB without a HID interface perfcap can see
     for u in rep.usb:
         if u["kind"] and tuple(int(x, 16) for x in u["vid_pid"].split(":")) not in seen_hid:
-            rep.findings.append(Finding(f"{u['known_as']} [{u['vid_pid']}]", f"USB bus {u['bus']} device {u['address']}",
+            rep.findings.append(Finding(f"{u['known_as']} [{u['vid_pid']}]",
+                                        f"USB bus {u['bus']} device {u['address']}",
                                         False, "it is on USB but hidapi lists no HID interface for it",
                                         "check that the kernel's HID driver is loaded (lsmod | grep hid) and that"
                                         " another program has not claimed it", u["kind"]))
@@ -134,9 +136,9 @@ def diagnose() -> Report:
         kinds = p.adapter.kinds if p.adapter else ()
         fix = ""
         if not ok:
-            fix = ("add yourself to the dialout group (sudo usermod -aG dialout $USER, then log in again)"
-                   + (f", or this rule:\n{rule_for(p.vid, p.pid, hidraw=False)}" if p.vid is not None and p.pid is not None
-                      else ""))
+            rule = (f", or this rule:\n{rule_for(p.vid, p.pid, hidraw=False)}"
+                    if p.vid is not None and p.pid is not None else "")
+            fix = "add yourself to the dialout group (sudo usermod -aG dialout $USER, then log in again)" + rule
         rep.findings.append(Finding(f"serial port {p.description or p.device} [{p.vid_pid or 'no USB id'}]", p.device,
                                     ok, problem, fix, kinds[0] if kinds else None, p.url))
     if not rep.findings:

@@ -117,7 +117,7 @@ class PhonePage(Device[PageCodec]):
     def declare_streams(self) -> list[StreamInfo]:
         rate = self.opts["rate"]
         return [
-            self.stream_info("imu", "imu", ACC_CHANNELS + ("gx", "gy", "gz"), ACC_UNITS + ("rad/s",) * 3, rate,
+            self.stream_info("imu", "imu", (*ACC_CHANNELS, "gx", "gy", "gz"), ACC_UNITS + ("rad/s",) * 3, rate,
                              FRAME, PAGE_CLOCK),
             self.stream_info("user_acc", "acc", ACC_CHANNELS, ACC_UNITS, rate, FRAME, PAGE_CLOCK),
             self.stream_info("attitude", "euler", ("alpha", "beta", "gamma"), ("deg", "deg", "deg"), None,

@@ -132,7 +132,7 @@ class TextLineLayout:
         self.columns: list[str | None] = []
         self.fields: list[_Field] = []
         seen_ch: set[str] = set()
-        for e, unit in zip(entries, units):
+        for e, unit in zip(entries, units, strict=True):
             if e in ("", "_"):
                 self.columns.append(None)
                 continue
@@ -357,8 +357,8 @@ class TextLineImu(Device[TextLineCodec]):
             if self._wrap:
                 ticks %= self._wrap
         chunk = np.searchsorted(chunks.offsets[1:], nl, side="right").astype(np.int64)
-        S = len(self._plans)
-        base = np.arange(n, dtype=np.int64) * S
+        n_streams = len(self._plans)
+        base = np.arange(n, dtype=np.int64) * n_streams
         out: dict[int, StreamReadings] = {}
         for k, (si, fields, template, _) in enumerate(self._plans):
             v = np.full((n, len(template)), np.nan)

@@ -18,7 +18,7 @@ the sensor) it is the device clock, wrapping at midnight.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
@@ -59,7 +59,7 @@ class WitMotionImu(Device[WitMotionCodec]):
     kind = "witmotion"
     description = "WitMotion WT901-family IMU (0x55-framed packets)"
     codec_cls = WitMotionCodec
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "rate": Option(float, 100.0, "output rate configured on the sensor, Hz", min=0.1, max=1000.0),
         "device_clock": Option(bool, False, "the sensor outputs time packets (0x50): use them as the device clock"),
     }
@@ -111,25 +111,26 @@ class WitMotionImu(Device[WitMotionCodec]):
             return None
         buf = chunks.data
         n = len(buf)
-        L = len(order)
-        if n == 0 or n % (PACKET_LEN * L):
+        per_cycle = len(order)
+        if n == 0 or n % (PACKET_LEN * per_cycle):
             return None
         a = np.frombuffer(buf, np.uint8).reshape(-1, PACKET_LEN)
         types = a[:, 1]
         if not (np.all(a[:, 0] == HEADER)
-                and np.array_equal(types.reshape(-1, L), np.broadcast_to(np.array(order, np.uint8), (len(a) // L, L)))
+                and np.array_equal(types.reshape(-1, per_cycle),
+                                   np.broadcast_to(np.array(order, np.uint8), (len(a) // per_cycle, per_cycle)))
                 and np.array_equal((a[:, :10].sum(axis=1, dtype=np.uint32) & 0xFF).astype(np.uint8), a[:, 10])):
             return None
         clocked = self.streams[IMU].clock is not None
         if clocked and TIME not in order:
             return None
-        ncyc = len(a) // L
+        ncyc = len(a) // per_cycle
         self.codec.stats.bytes_in += n
         self.codec.stats.frames += len(a)
         ends = chunks.offsets[1:]
-        term_end = (np.arange(1, ncyc + 1, dtype=np.int64) * L) * PACKET_LEN - 1
+        term_end = (np.arange(1, ncyc + 1, dtype=np.int64) * per_cycle) * PACKET_LEN - 1
         chunk = np.searchsorted(ends, term_end, side="right").astype(np.int64)
-        cyc = a.reshape(ncyc, L, PACKET_LEN)
+        cyc = a.reshape(ncyc, per_cycle, PACKET_LEN)
 
         def rows(t: int) -> np.ndarray | None:
             return cyc[:, order.index(t), 2:10] if t in order else None
@@ -162,8 +163,8 @@ class WitMotionImu(Device[WitMotionCodec]):
         q = words(QUAT)
         if q is not None:
             present.append((QUATS, q * QUAT_SCALE))
-        S = len(present)
-        base = np.arange(ncyc, dtype=np.int64) * S
+        n_streams = len(present)
+        base = np.arange(ncyc, dtype=np.int64) * n_streams
         out = {si: StreamReadings(v, ticks if self.streams[si].clock is not None else None, chunk, base + k)
                for k, (si, v) in enumerate(present)}
         return BatchReadings(out)
@@ -218,11 +219,12 @@ class WitMotionImu(Device[WitMotionCodec]):
 
 def encode_cycle(codec: WitMotionCodec, acc_g: tuple[float, float, float], gyro_dps: tuple[float, float, float],
                  angle_deg: tuple[float, float, float] | None, temp_c: float = 25.0,
-                 ms_of_day: int | None = None, mag: tuple[int, int, int] | None = None) -> tuple[bytes, list[WitPacket]]:
+                 ms_of_day: int | None = None,
+                 mag: tuple[int, int, int] | None = None) -> tuple[bytes, list[WitPacket]]:
     """The bytes a WT901 sends for one output cycle (used by simulators); returns (bytes, packets)."""
 
     def q(v: float, full: float) -> int:
-        return max(-32768, min(32767, int(round(v / full * 32768.0))))
+        return max(-32768, min(32767, round(v / full * 32768.0)))
 
     pk: list[WitPacket] = []
     if ms_of_day is not None:
@@ -232,7 +234,7 @@ def encode_cycle(codec: WitMotionCodec, acc_g: tuple[float, float, float], gyro_
         ss, ms = divmod(rem, 1000)
         pk.append(WitPacket.from_time(26, 11, 23, hh, mi, ss, ms))
     pk.append(WitPacket.from_words(ACC, (q(acc_g[0], 16), q(acc_g[1], 16), q(acc_g[2], 16),
-                                        max(-32768, min(32767, int(round(temp_c * 100)))))))
+                                        max(-32768, min(32767, round(temp_c * 100))))))
     pk.append(WitPacket.from_words(GYRO, (q(gyro_dps[0], 2000), q(gyro_dps[1], 2000), q(gyro_dps[2], 2000), 0)))
     if angle_deg is not None:
         pk.append(WitPacket.from_words(ANGLE, (q(angle_deg[0], 180), q(angle_deg[1], 180), q(angle_deg[2], 180), 0)))

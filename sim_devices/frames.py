@@ -61,17 +61,17 @@ def witmotion_wire(dev_ms: np.ndarray | None, acc_g: np.ndarray, gyro_dps: np.nd
         return w.view(np.uint8).reshape(n, 8)
 
     types += [ACC, GYRO]
-    payloads += [words(acc_g, 16.0, int(round(temp_c * 100))), words(gyro_dps, 2000.0)]
+    payloads += [words(acc_g, 16.0, round(temp_c * 100)), words(gyro_dps, 2000.0)]
     if eul_deg is not None:
         types.append(ANGLE)
         payloads.append(words(eul_deg, 180.0))
     if mag is not None:
         types.append(MAG)
         payloads.append(words(mag, None))
-    L = len(types)
+    per_cycle = len(types)
     wire = WitMotionCodec.encode_many(np.tile(np.array(types, np.uint8), n),
-                                      np.stack(payloads, axis=1).reshape(n * L, 8))
-    return wire.tobytes(), L * 11
+                                      np.stack(payloads, axis=1).reshape(n * per_cycle, 8))
+    return wire.tobytes(), per_cycle * 11
 
 
 class FrameSource(abc.ABC):
@@ -124,7 +124,7 @@ class WavingSource(FrameSource):
         self.bias = np.asarray(gyro_bias_dps, np.float64)
         self.noise = gyro_noise_dps
         self.rng = np.random.default_rng(seed + 1000)
-        self.block = max(1, int(round(rate * block_s)))
+        self.block = max(1, round(rate * block_s))
         self.heading = heading_deg
         #: the text-line layout its encoder made on first use (kind ``textline``)
         self.textline_layout: TextLineLayout | None = None

@@ -66,7 +66,7 @@ class _LayoutResponder(HidResponder):
     default_rate: ClassVar[float] = 100.0
     kind = "hid"
     vid = 0x1209  # pid.codes open-source vendor ID
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "evemu": Option(str, "", "replay this evemu .events recording (its .desc beside it)"),
         "report_rate": Option(float, 0.0, "report rate of the synthetic motion, Hz (0 = the device's default)", min=0.0,
                        max=8000.0),
@@ -297,7 +297,7 @@ class TouchResponder(_LayoutResponder):
         n = len(self.slots)
         for start in range(0, max(len(contacts), 1), n):
             vals: dict[int, int] = {self.fcount.index: len(contacts) if start == 0 else 0}
-            for slot, c in zip(self.slots, contacts[start:start + n]):
+            for slot, c in zip(self.slots, contacts[start:start + n], strict=False):
                 vals[slot["confidence"].index] = 1
                 for k, v in c.items():
                     vals[slot[k].index] = v

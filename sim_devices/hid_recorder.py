@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.errors import TraceError
 from devices.options import Option
@@ -123,7 +123,7 @@ class HidRecorderResponder(HidResponder):
     """Replays the input reports of one device of a hid-recorder capture at their recorded times."""
 
     kind = "hid"
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "rdesc_file": Option(str, "", "a hid-recorder capture whose R:/I:/N: lines describe the device"
                              " (for files that hold only E: lines)"),
         "device": Option(int, -1, "which D: device of the capture to replay (-1: the first)", min=-1),

@@ -92,13 +92,13 @@ class HidResponder(abc.ABC):
         """The feature report (its ID first), or ``None`` if the device has none by that ID."""
         return None
 
-    def set_feature(self, data: bytes) -> None:
+    def set_feature(self, data: bytes) -> None:  # noqa: B027 - an optional hook; by default nothing happens
         """A feature report written by the host (its ID first)."""
 
-    def output(self, data: bytes) -> None:
+    def output(self, data: bytes) -> None:  # noqa: B027 - an optional hook
         """An output report written by the host (its ID first); answer with ``reply``."""
 
-    def on_open(self) -> None:
+    def on_open(self) -> None:  # noqa: B027 - an optional hook
         """The host opened the device (again); ``bus`` may have changed (a replug over Bluetooth)."""
 
     def reply(self, report: bytes) -> None:
@@ -121,8 +121,8 @@ def _responder_name(address: str) -> str:
 
 def responder_class(name: str) -> type[HidResponder]:
     if name not in RESPONDERS:
-        raise ConfigError(f"simhid://{name}: no simulated HID device of that name; known: {', '.join(sorted(RESPONDERS))}"
-                          " or simhid:///PATH.hid (a hid-recorder capture)")
+        raise ConfigError(f"simhid://{name}: no simulated HID device of that name; known:"
+                          f" {', '.join(sorted(RESPONDERS))} or simhid:///PATH.hid (a hid-recorder capture)")
     mod, cls = RESPONDERS[name]
     obj = getattr(importlib.import_module(mod), cls)
     if not (isinstance(obj, type) and issubclass(obj, HidResponder)):
@@ -135,7 +135,7 @@ class SimHidTransport(Transport, HidTransportBase):
 
     scheme = "simhid"
     usage = "simhid://NAME[?options] or simhid:///PATH.hid"
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "seed": Option(int, 1, "motion and noise seed", min=0),
         "bus": Option(str, "usb", "the bus the device is on", choices=("usb", "bluetooth")),
         "serial": Option(str, "", "serial number (default from the seed)"),

@@ -43,9 +43,11 @@ class WavingMotion:
             amp = math.radians(amplitude_deg) * (0.5 if axis == 1 else 1.0)
             terms = []
             for _ in range(3):
-                terms.append((amp * rnd.uniform(0.2, 0.5), 2 * math.pi * rnd.uniform(0.2, 2.0), rnd.uniform(0, 2 * math.pi)))
+                terms.append((amp * rnd.uniform(0.2, 0.5), 2 * math.pi * rnd.uniform(0.2, 2.0),
+                              rnd.uniform(0, 2 * math.pi)))
             self.terms.append(terms)
-        self.lin = [(rnd.uniform(0.2, 1.0), 2 * math.pi * rnd.uniform(0.5, 1.5), rnd.uniform(0, 2 * math.pi)) for _ in range(3)]
+        self.lin = [(rnd.uniform(0.2, 1.0), 2 * math.pi * rnd.uniform(0.5, 1.5), rnd.uniform(0, 2 * math.pi))
+                    for _ in range(3)]
         self.loop_s = loop_s
         self.loop_jitter = loop_jitter
         if loop_s is None:

@@ -55,11 +55,11 @@ class PageMessage(NamedTuple):
     sent_ms: float
 
 
-def page_hello(id: str = "sim-page-0001", platform: str = "android", ua: str = DEFAULT_UA,
+def page_hello(page_id: str = "sim-page-0001", platform: str = "android", ua: str = DEFAULT_UA,
                screen: tuple[float, float] | None = (412.0, 915.0), orient: float | None = 0.0,
                t: float | None = 0.0, token: str | None = None) -> bytes:
     """The page's hello (with ``token`` when given, as the page sends it; the host removes it)."""
-    return _PAGE.encode(PageHello(id, platform, ua, screen, orient, t, 1, token))
+    return _PAGE.encode(PageHello(page_id, platform, ua, screen, orient, t, 1, token))
 
 
 def page_pong(h: int, t: float) -> bytes:
@@ -132,7 +132,8 @@ def page_messages(duration_s: float, rate_hz: float = 60.0, *, batch_s: float = 
             touch_rows.append((float(t_ms[k0 + j]) + 1.0, float(phase), 7.0, 100.0 + 30.0 * j, 400.0 - 10.0 * j,
                                0.0, 12.5, 12.5))
     rows: list[tuple[float, str, tuple[float, ...]]] = (
-        [(r[0], "m", r) for r in motion_rows] + [(r[0], "o", r) for r in orientation] + [(r[0], "t", r) for r in touch_rows])
+        [(r[0], "m", r) for r in motion_rows] + [(r[0], "o", r) for r in orientation]
+        + [(r[0], "t", r) for r in touch_rows])
     out: list[PageMessage] = []
     if not rows:
         return out
@@ -259,11 +260,11 @@ def dispel_to_sensorlogger(path: str | Path, batch_s: float = 0.5, *, standardis
     entries: list[tuple[int, int, SensorEntry]] = []  # (window, sensor order, entry)
     w_ns = round(batch_s * 1e9)
     for lv in rec.levels:
-        for ts, ua, gr in zip(lv.acc_ts_ms.tolist(), lv.user_acc_g.tolist(), lv.gravity_g.tolist()):
+        for ts, ua, gr in zip(lv.acc_ts_ms.tolist(), lv.user_acc_g.tolist(), lv.gravity_g.tolist(), strict=True):
             t = ts * 1_000_000
             entries.append((t // w_ns, 0, SensorEntry("accelerometer", t, tuple(x * s for x in ua))))
             entries.append((t // w_ns, 1, SensorEntry("gravity", t, tuple(x * s for x in gr))))
-        for ts, r in zip(lv.gyro_ts_ms.tolist(), lv.rotation_rad_s.tolist()):
+        for ts, r in zip(lv.gyro_ts_ms.tolist(), lv.rotation_rad_s.tolist(), strict=True):
             t = ts * 1_000_000
             entries.append((t // w_ns, 2, SensorEntry("gyroscope", t, tuple(r))))
     entries.sort(key=lambda x: (x[0], x[1], x[2].time))
@@ -295,7 +296,8 @@ def synthetic_arrivals(t_last_ns: Sequence[int], *, seed: int = 5, host0_ns: int
     out: list[int] = []
     last = -(2**62)
     for t in t_last_ns:
-        h = host0_ns + round((t - d0) * (1.0 + drift_ppm * 1e-6)) + round((latency_ms + rnd.uniform(0, jitter_ms)) * 1e6)
+        h = (host0_ns + round((t - d0) * (1.0 + drift_ppm * 1e-6))
+             + round((latency_ms + rnd.uniform(0, jitter_ms)) * 1e6))
         h = max(h, last)
         out.append(h)
         last = h

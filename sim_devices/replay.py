@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -48,7 +48,7 @@ class ReplayTransport(Transport, HidTransportBase):
 
     scheme = "replay"
     usage = "replay://SESSION.mcap?device=NAME&speed=1"
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "device": Option(str, "", "which recorded device (needed if the session has several)"),
         "speed": Option(float, 1.0, "playback speed factor; 0 = as fast as possible", min=0.0, max=1000.0),
         "loop": Option(bool, False, "start over at the end"),

@@ -167,7 +167,7 @@ class _SonyResponder(HidResponder):
     tick_hz: ClassVar[float] = 0.0
     wrap: ClassVar[int] = 0
     motion: WavingMotion
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "handshake": Option(str, "ok", "how the pad answers the calibration read", choices=("ok", "silent", "wrong")),
         "calibration": Option(str, "factory", "factory calibration, or a degenerate one (zero spans)",
                               choices=("factory", "degenerate")),
@@ -265,7 +265,7 @@ class DualShock4Responder(_SonyResponder):
     codec_cls = DualShock4Codec
     tick_hz = DS4_TICK_HZ
     wrap = DS4_TICK_WRAP
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         **_SonyResponder.options,
         "model": Option(str, "zct2", "CUH-ZCT1 (054c:05c4) or CUH-ZCT2 (054c:09cc)", choices=("zct1", "zct2")),
     }

@@ -17,7 +17,7 @@ reading so tests can measure clock-sync error end to end. What the simulator kno
 from __future__ import annotations
 
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -43,7 +43,7 @@ class SynthTransport(Transport):
 
     scheme = "synth"
     usage = "synth://imu?rate=HZ&seed=N"
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "rate": Option(float, 200.0, "readings per second", min=1.0, max=2000.0),
         "seed": Option(int, 1, "motion and noise seed", min=0),
         "device_clock": Option(bool, True, "send time packets (a device clock)"),
@@ -113,7 +113,7 @@ class SynthTransport(Transport):
 
     def _host_ns(self, seconds: float) -> int:
         assert self._t0 is not None
-        return self._t0 + int(round(seconds * 1e9))
+        return self._t0 + round(seconds * 1e9)
 
     def _unplugged(self, now_ns: int) -> bool:
         o = self.opts
@@ -201,7 +201,7 @@ class SynthTransport(Transport):
         if o["truth"]:
             self.truth_ns += true_host.tolist()
         q = self._queue
-        for k, (a, th) in enumerate(zip(arrival.tolist(), true_host.tolist())):
+        for k, (a, th) in enumerate(zip(arrival.tolist(), true_host.tolist(), strict=True)):
             piece = data[k * step:(k + 1) * step]
             if bad is not None and bad[k]:
                 piece = self._nrng.integers(0, 256, int(self._nrng.integers(1, 12)), np.uint8).tobytes() + piece

@@ -87,14 +87,14 @@ class Codec(abc.ABC):
             log.debug("%s: %s (at byte %d)", self.name, message, offset)
 
 
-class BadMessage(ValueError):
+class BadMessageError(ValueError):
     """Why one message is dropped; raised inside ``MessageCodec.parse`` and counted by ``feed``."""
 
 
 class MessageCodec(Codec):
     """A codec for message transports (a WebSocket frame, an HTTP body, a UDP datagram): each
     ``feed`` is exactly one whole message, so nothing is buffered between calls. ``parse`` turns
-    one message into frames or raises ``BadMessage``; ``feed`` bounds the size and counts a bad
+    one message into frames or raises ``BadMessageError``; ``feed`` bounds the size and counts a bad
     message as one framing error with its bytes skipped.
     """
 
@@ -113,7 +113,7 @@ class MessageCodec(Codec):
             return self.drop(f"message of {len(data)} bytes exceeds {self.max_bytes}", data)
         try:
             frames = self.parse(data)
-        except BadMessage as exc:
+        except BadMessageError as exc:
             return self.drop(str(exc), data)
         self.stats.frames += len(frames)
         return frames
@@ -123,7 +123,7 @@ class MessageCodec(Codec):
         """The frames of one message.
 
         Raises:
-            BadMessage: the message is unusable (it is dropped and counted).
+            BadMessageError: the message is unusable (it is dropped and counted).
         """
 
     def drop(self, why: str, data: bytes) -> list[Any]:

@@ -240,7 +240,7 @@ class Bno08xRvcCodec(Codec):
             ValueError: a field is out of its range (u8 or s16).
         """
         f = frame
-        for name, v in zip(("yaw", "pitch", "roll", "ax", "ay", "az"), f[1:7]):
+        for name, v in zip(("yaw", "pitch", "roll", "ax", "ay", "az"), f[1:7], strict=True):
             if not _S16[0] <= v <= _S16[1]:
                 raise ValueError(f"RVC frame field {name}={v} is outside the int16 range")
         for name, v in (("counter", f.counter), ("mi", f.mi), ("mr", f.mr), ("reserved", f.reserved)):

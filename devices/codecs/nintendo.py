@@ -193,8 +193,8 @@ class ImuCalibration:
 
     def valid(self) -> bool:
         """Usable: every divisor positive (a blank block decodes as -1 everywhere and is not)."""
-        return all(s - o > 0 for s, o in zip(self.acc_sens, self.acc_origin)) and \
-            all(s - o > 0 for s, o in zip(self.gyro_sens, self.gyro_origin))
+        return all(s - o > 0 for s, o in zip(self.acc_sens, self.acc_origin, strict=True)) and \
+            all(s - o > 0 for s, o in zip(self.gyro_sens, self.gyro_origin, strict=True))
 
     def acc_scale(self) -> tuple[float, float, float]:
         """m/s^2 per count, per axis: 4 g / (acc_sens - acc_origin)."""

@@ -34,7 +34,7 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.parsing import osc_types
 
-from devices.codecs.base import BadMessage, MessageCodec
+from devices.codecs.base import BadMessageError, MessageCodec
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -70,7 +70,7 @@ class OscFrame(NamedTuple):
     timetag: int | None = None
 
 
-_Reject = BadMessage  # why an input is rejected
+_Reject = BadMessageError  # why an input is rejected
 
 
 def _tuples(v: Any) -> Any:
@@ -168,7 +168,7 @@ def _check_osc_size(m: osc_message.OscMessage) -> None:
     if idx < len(raw):
         tags, _ = osc_types.get_string(raw, idx)
         size += _pad4(len(tags.encode("utf-8")) + 1)
-        for tag, v in zip((t for t in tags[1:] if t not in "[]"), _leaves(m.params)):
+        for tag, v in zip((t for t in tags[1:] if t not in "[]"), _leaves(m.params), strict=False):
             if tag in "ifrm":
                 size += 4
             elif tag in "hdt":

@@ -41,7 +41,7 @@ import logging
 import math
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from devices.codecs.base import BadMessage, MessageCodec
+from devices.codecs.base import BadMessageError, MessageCodec
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -158,7 +158,7 @@ class SensorLoggerMessage(NamedTuple):
 
 
 # -- helpers --------------------------------------------------------------------------------------
-_Invalid = BadMessage  # a message (or one row or entry of it) is unusable
+_Invalid = BadMessageError  # a message (or one row or entry of it) is unusable
 
 
 def _reject_constant(name: str) -> float:
@@ -319,7 +319,7 @@ class PageCodec(MessageCodec):
         return t
 
     def _motion_row(self, r: list[Any]) -> tuple[float, ...]:
-        return (self._time(r[0]),) + tuple(_num_or_null(x, MOTION_COLUMNS[k + 1]) for k, x in enumerate(r[1:]))
+        return (self._time(r[0]), *tuple(_num_or_null(x, MOTION_COLUMNS[k + 1]) for k, x in enumerate(r[1:])))
 
     def _orientation_row(self, r: list[Any]) -> tuple[float, ...]:
         ab = r[4]
@@ -454,7 +454,7 @@ class SensorLoggerCodec(MessageCodec):
         payload = []
         for e in frame.entries:
             keys, required = SENSORLOGGER_FIELDS[e.name]
-            vals = {k: _json_num(v) for i, (k, v) in enumerate(zip(keys, e.values))
+            vals = {k: _json_num(v) for i, (k, v) in enumerate(zip(keys, e.values, strict=False))
                     if i < required or math.isfinite(v)}
             d: dict[str, Any] = {"name": e.name, "time": e.time, "values": vals}
             if e.accuracy is not None:

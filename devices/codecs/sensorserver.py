@@ -21,7 +21,7 @@ import json
 import math
 from typing import Any, NamedTuple
 
-from devices.codecs.base import BadMessage, MessageCodec
+from devices.codecs.base import BadMessageError, MessageCodec
 
 #: Bounds of one SensorServer message.
 SS_MAX_BYTES = 65536
@@ -30,7 +30,7 @@ SS_MAX_TYPE = 128
 SS_TOUCH_ACTIONS = ("ACTION_DOWN", "ACTION_MOVE", "ACTION_UP")
 _MAX_NS = (1 << 63) - 1
 
-_Reject = BadMessage  # why an input is rejected
+_Reject = BadMessageError  # why an input is rejected
 
 
 class SensorServerEvent(NamedTuple):

@@ -414,8 +414,8 @@ def encode_calibration(cal: ImuCalibration, model: str, bus: str) -> bytes:
     if model == "ds4" and bus == BLUETOOTH:
         gyro = (*cal.gyro_plus, *cal.gyro_minus)
     else:
-        gyro = tuple(x for pm in zip(cal.gyro_plus, cal.gyro_minus) for x in pm)
-    acc = tuple(x for pm in zip(cal.acc_plus, cal.acc_minus) for x in pm)
+        gyro = tuple(x for pm in zip(cal.gyro_plus, cal.gyro_minus, strict=True) for x in pm)
+    acc = tuple(x for pm in zip(cal.acc_plus, cal.acc_minus, strict=True) for x in pm)
     out = bytearray(length)
     out[0] = rid
     _CAL.pack_into(out, 1, *cal.gyro_bias, *gyro, cal.speed_plus, cal.speed_minus, *acc)

@@ -357,12 +357,12 @@ class TextLineCodec(Codec):
         if len(frame.values) != len(self.fields):
             raise ValueError(f"{len(frame.values)} values for {len(self.fields)} mapped fields")
         if self.fmt == KV:
-            parts = [f"{k}:{format_number(v)}" for i, (k, v) in enumerate(zip(self.fields, frame.values))
+            parts = [f"{k}:{format_number(v)}" for i, (k, v) in enumerate(zip(self.fields, frame.values, strict=True))
                      if frame.present >> i & 1]
             return (" ".join(parts) + "\n").encode("ascii")
         it = iter(frame.values)
         cols = []
-        for i, c in enumerate(self.columns):
+        for _i, c in enumerate(self.columns):
             cols.append("0" if c is None else format_number(next(it)))
         return (",".join(cols) + "\n").encode("ascii")
 

@@ -296,7 +296,7 @@ def parse_descriptor(rdesc: bytes, source: str = "report descriptor") -> Descrip
         raise ConfigError(f"{source}: empty HID report descriptor", source=source)
     try:
         rd = hh.ReportDescriptor.from_bytes(list(data))
-    except Exception as exc:  # what hid-tools parsed but cannot lay out is a bad descriptor too  # hid-tools raises KeyError, IndexError, ParseError, AssertionError...
+    except Exception as exc:  # hid-tools raises KeyError, IndexError, ParseError, AssertionError...
         raise ConfigError(f"{source}: hid-tools cannot parse the HID report descriptor ({len(data)} bytes):"
                           f" {type(exc).__name__}: {exc}", source=source) from exc
     if not rd.input_reports:
@@ -310,7 +310,7 @@ def parse_descriptor(rdesc: bytes, source: str = "report descriptor") -> Descrip
         for rep in rd.feature_reports.values():
             lay = _layout_of(rep, with_id=True)
             multipliers += [(lay, f) for f in lay.fields if f.usage == GD_RES_MULTIPLIER]
-    except Exception as exc:
+    except Exception as exc:  # what hid-tools parsed but cannot lay out is a bad descriptor too
         raise ConfigError(f"{source}: the HID report descriptor ({len(data)} bytes) cannot be laid out:"
                           f" {type(exc).__name__}: {exc}", source=source) from exc
     apps = tuple(dict.fromkeys(r.application for r in reports.values()))

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from capture.errors import CaptureError, ConfigError, DeviceInitError
 from devices.base import Reading
@@ -83,7 +83,7 @@ class GenericHid(HidDevice[HidReportCodec]):
     description = "HID mouse, pen or touch digitizer (descriptor-driven)"
     codec_cls = HidReportCodec
     codec: HidReportCodec
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "rdesc": Option(str, "", "the report descriptor as hex (else asked of the transport before open)"),
         "profile": Option(str, "auto", "which part to publish; with no descriptor known before open, the"
                           " standard layout to assume", choices=("auto", "mouse", "pen", "touch")),
@@ -220,13 +220,13 @@ class GenericHid(HidDevice[HidReportCodec]):
             self._plans.setdefault(rid, []).append(p)
 
     def _pen_plan(self, si: int, r: ReportLayout, pf: list[FieldLayout]) -> Plan:
-        F = r.fields
+        fields = r.fields
 
         def conv(usage: int, how: str) -> Callable[[list[Any]], float]:
             i = _idx(pf, usage)
             if i is None:
                 return lambda v: NAN
-            f = F[i]
+            f = fields[i]
             if (how == "pos" and f.unit != "m") or how == "norm":
                 return lambda v: f.normalised(v[i])
             if how == "bool":
@@ -265,12 +265,12 @@ class GenericHid(HidDevice[HidReportCodec]):
                                         ("1", "1", unit_xy, unit_xy, unit_xy, unit_xy, "1"), rate))
 
     def _touch_plan(self, si: int, r: ReportLayout, contacts: list[list[FieldLayout]], icount: int | None) -> Plan:
-        F = r.fields
+        fields = r.fields
         slots = []
         for g in contacts:
             def get(usage: int, g: list[FieldLayout] = g) -> tuple[int, FieldLayout] | None:
                 i = _idx(g, usage)
-                return None if i is None else (i, F[i])
+                return None if i is None else (i, fields[i])
             slots.append(tuple(get(u) for u in (DIG_CONTACT_ID, DIG_TIP_SWITCH, GD_X, GD_Y, DIG_WIDTH, DIG_HEIGHT)))
         nslots = len(slots)
 

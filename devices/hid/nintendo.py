@@ -132,7 +132,8 @@ class _SwitchBase(HidDevice[SwitchCodec]):
 
     def _usb_setup(self) -> None:
         for cmd, what in ((sw.USB_STATUS, "USB status (0x80 0x01)"), (sw.USB_HANDSHAKE, "USB handshake (0x80 0x02)"),
-                          (sw.USB_BAUD_3M, "USB baud rate (0x80 0x03)"), (sw.USB_HANDSHAKE, "USB handshake (0x80 0x02)")):
+                          (sw.USB_BAUD_3M, "USB baud rate (0x80 0x03)"),
+                          (sw.USB_HANDSHAKE, "USB handshake (0x80 0x02)")):
             self._usb_command(cmd, what)
         self.hid_output(sw.usb_command(sw.USB_NO_TIMEOUT))  # no reply
 
@@ -202,7 +203,8 @@ class _SwitchBase(HidDevice[SwitchCodec]):
         Raises:
             DeviceInitError: the reply is for another address or length, or short.
         """
-        rep = self.subcommand(sw.SC_SPI_READ, sw.spi_read_args(address, length), f"SPI read of {what} at 0x{address:04x}")
+        rep = self.subcommand(sw.SC_SPI_READ, sw.spi_read_args(address, length),
+                              f"SPI read of {what} at 0x{address:04x}")
         try:
             addr, n, payload = sw.parse_spi_reply(rep.data)
         except ValueError as exc:

@@ -92,7 +92,7 @@ class _SonyPad(HidDevice[DualShock4Codec | DualSenseCodec]):
     tick_hz: ClassVar[float] = 0.0
     wrap: ClassVar[int] = 0
     full_bt_id: ClassVar[int] = 0
-    options = {
+    options: ClassVar[dict[str, Option]] = {
         "init_timeout": Option(float, 1.0, "seconds to wait for the pad during the handshake", min=0.01, max=60.0),
     }
 

@@ -76,7 +76,8 @@ class AppDevice(Device[CodecT]):
     """Common parts: streams from ``StreamDecl``s, and errors the device layer finds (counted by the
     codec's ``reject``) reported like the codec's own."""
 
-    def _declare(self, decls: Sequence[StreamDecl], rate: float | None, clock: DeviceClockSpec | None) -> list[StreamInfo]:
+    def _declare(self, decls: Sequence[StreamDecl], rate: float | None,
+                 clock: DeviceClockSpec | None) -> list[StreamInfo]:
         return [self.stream_info(d.suffix, d.kind, d.channels, d.units, rate if d.regular else None, d.frame,
                                  clock if d.regular else None) for d in decls]
 

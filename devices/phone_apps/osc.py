@@ -267,7 +267,7 @@ class OscLayout:
     def _custom(self, entries: list[tuple[str, str, tuple[str, ...], float]]) -> None:
         names: list[str] = []
         chans: dict[str, list[str]] = {}
-        for _, stream, channels, _ in entries:
+        for _, stream, _channels, _ in entries:
             if stream not in chans:
                 names.append(stream)
                 fixed = _CUSTOM_KINDS.get(stream, ("extra", "1", None))[2]
@@ -394,7 +394,7 @@ class OscPhone(AppDevice[OscCodec]):
                 and _ZIGSIM_RE.match(address):
             # name, uuid, os, os version, screen width and height (px)
             keys = ("name", "uuid", "os", "osversion", "width", "height")
-            self.info.update({k: str(a)[:128] for k, a in zip(keys, m.args)})
+            self.info.update({k: str(a)[:128] for k, a in zip(keys, m.args, strict=False)})
             return
         if self.unmatched.add(address[:128]):
             log.info("osc %s: address %s is not in map %s; ignored (counted in health()['unmatched'])",
@@ -405,13 +405,14 @@ class OscPhone(AppDevice[OscCodec]):
         n = len(route.positions)
         args = m.args
         ok = len(args) == n and all(
-            p is None or ((type(a) is float or type(a) is int) and math.isfinite(a)) for p, a in zip(route.positions, args))
+            p is None or ((type(a) is float or type(a) is int) and math.isfinite(a))
+            for p, a in zip(route.positions, args, strict=True))
         if not ok:
             self.bad_args += 1
             self.codec.reject(f"{m.address} needs {n} finite number(s), got {len(args)} argument(s) "
                                   f"{tuple(type(a).__name__ for a in args[:8])}; message dropped")
             return None
-        return tuple(NAN if p is None else float(a) for p, a in zip(route.positions, args))
+        return tuple(NAN if p is None else float(a) for p, a in zip(route.positions, args, strict=True))
 
     def _finish(self, snap: Mapping[str, tuple[OscRoute, tuple[float, ...]]], out: list[Reading]) -> None:
         """Readings of one snapshot, in stream order (touch slots in slot order)."""
@@ -428,7 +429,7 @@ class OscPhone(AppDevice[OscCodec]):
             if row is None:
                 row = rows[route.stream] = [NAN] * len(self.streams[route.stream].channels)
             k = route.scale
-            for p, v in zip(route.positions, vals):
+            for p, v in zip(route.positions, vals, strict=True):
                 if p is not None:
                     row[p] = v * k
         if self.layout.derived_imu is not None:

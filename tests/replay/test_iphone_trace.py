@@ -42,7 +42,7 @@ def replay(trace: Path, standardised: bool = False, batch_s: float = 0.5):
     pushes = dispel_to_sensorlogger(trace, batch_s=batch_s, standardised=standardised)
     hosts = synthetic_arrivals([p.t_last_ns for p in pushes], seed=11, host0_ns=HOST0, latency_ms=LATENCY_MS,
                                jitter_ms=JITTER_MS, drift_ppm=DRIFT_PPM)
-    chunks = [Chunk(p.body, h, Direction.RX) for p, h in zip(pushes, hosts)]
+    chunks = [Chunk(p.body, h, Direction.RX) for p, h in zip(pushes, hosts, strict=True)]
     dev = SensorLoggerPhone("iphone", open_transport("loop://"),
                             {"rate": 20, "platform": "standardised" if standardised else "ios"})
     items = [x for c in chunks for x in dev.process_chunk(c)]

@@ -3,6 +3,8 @@ follows the recording (checked on a manual clock, so no test sleeps)."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -81,7 +83,7 @@ def test_replay_loops_with_increasing_times(session_path):
     n = len(list(SessionReader(session_path).raw_chunks("a")))
     got = [d.transport.read(0.1) for _ in range(3 * n)]
     ts = [c.t_ns for c in got]
-    assert all(b > a for a, b in zip(ts, ts[1:]))
+    assert all(b > a for a, b in itertools.pairwise(ts))
     assert [c.data for c in got[:n]] == [c.data for c in got[n:2 * n]]
     d.close()
 
@@ -97,7 +99,7 @@ def test_replay_stamp_now_option(session_path):
 
 def test_replay_url_errors(session_path, tmp_path):
     record(session_path, [f"a=synth://imu?{FAST}", f"b=synth://imu?{FAST}"])
-    with pytest.raises(ConfigError, match="has 2 devices .*device=NAME"):
+    with pytest.raises(ConfigError, match=r"has 2 devices .*device=NAME"):
         open_device(f"replay://{session_path}")
     with pytest.raises(ConfigError, match="no device 'z'"):
         open_device(f"replay://{session_path}?device=z")

@@ -75,7 +75,7 @@ def test_values_are_exact_multiples_of_the_declared_quantum(datasheet_frame):
     for x in items:
         if isinstance(x, Sample):
             q = d.streams[0 if x.stream.endswith("euler") else 1].quantum
-            assert all(round(v / qq) * qq == v for v, qq in zip(x.values, q))
+            assert all(round(v / qq) * qq == v for v, qq in zip(x.values, q, strict=True))
 
 
 def test_registered_and_streams_declared():
@@ -298,7 +298,7 @@ def test_physical_encoders_agree_and_reject_out_of_range():
         encode_rvc_many(np.arange(1), np.array([[0, 0, 400.0]]), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="finite"):
         encode_rvc_many(np.arange(1), np.array([[0, 0, np.nan]]), np.zeros((1, 3)))
-    with pytest.raises(ValueError, match="0..255"):
+    with pytest.raises(ValueError, match=r"0\.\.255"):
         Bno08xRvcCodec().encode(RvcFrame(256, 0, 0, 0, 0, 0, 0))
 
 

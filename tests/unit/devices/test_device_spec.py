@@ -32,7 +32,7 @@ def test_invalid_strings_show_the_expected_form(text):
 
 
 def test_unknown_option_names_the_known_ones():
-    with pytest.raises(ConfigError, match="unknown option 'rte'.*rate"):
+    with pytest.raises(ConfigError, match=r"unknown option 'rte'.*rate"):
         open_device("synth://imu?rte=100")
 
 
@@ -46,9 +46,9 @@ def test_bad_option_value():
 
 
 def test_unknown_kind_and_scheme():
-    with pytest.raises(DeviceUnavailableError, match="known kinds: .*witmotion"):
+    with pytest.raises(DeviceUnavailableError, match=r"known kinds: .*witmotion"):
         open_device("nokind@synth://imu")
-    with pytest.raises(DeviceUnavailableError, match="known schemes: .*synth"):
+    with pytest.raises(DeviceUnavailableError, match=r"known schemes: .*synth"):
         open_device("witmotion@bogus://x")
     assert "witmotion" in known_kinds() and {"synth", "replay"} <= set(known_schemes())
 

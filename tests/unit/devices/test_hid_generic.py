@@ -95,7 +95,7 @@ def test_rollermouse_reports_decode_as_hid_decode_says() -> None:
         dec = rep.decode(data)
         assert [dec[names.index(f"B{i}")] for i in range(1, 9)] == fields["Button"]
         assert [dec[names.index(k)] for k in ("X", "Y", "Wheel")] == fields["X"] + fields["Y"] + fields["Wheel"]
-        vendor = [d for d, f in zip(dec, rep.fields) if f.name == "Vendor Usage 1"]
+        vendor = [d for d, f in zip(dec, rep.fields, strict=True) if f.name == "Vendor Usage 1"]
         assert vendor == fields["Vendor Usage 1"]
     # the vectorised decoder agrees with the scalar one
     arr = np.frombuffer(b"".join(d for _, d in expected), np.uint8).reshape(len(expected), -1)

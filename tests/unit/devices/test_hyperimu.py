@@ -33,7 +33,7 @@ HEADER = (b"@ HyperIMU - ianovir - 2017\r\n"
           b"\r\n"
           b"timestamp,MPL_Gyroscope.x,MPL_Gyroscope.y,MPL_Gyroscope.z,MPL_Accelerometer.x,MPL_Accelerometer.y,"
           b"MPL_Accelerometer.z,MPL_Magnetic_Field.x,MPL_Magnetic_Field.y,MPL_Magnetic_Field.z\r\n")
-TS_ROWS = (b"1510411143791,0.004627242,0.43825644,0.19575885,-1.1764508,3.1069257,9.461885,-785.457,-655.622,-1005.397\r\n"
+TS_ROWS = (b"1510411143791,0.004627242,0.43825644,0.19575885,-1.1764508,3.1069257,9.461885,-785.457,-655.622,-1005.397\r\n"  # noqa: E501
            b"1510411143845,0.46269095,-0.42673826,0.1584746,-1.6020203,2.477849,10.143634,-786.357,-656.072,-1005.697\r\n"
            b"1510411143897,-4.4906617E-4,-0.19664116,0.11905981,-0.9106945,3.0883706,9.331401,-788.156,-658.171,-1005.847\r\n"
            b"1510411143951,-4.4906617E-4,-0.19664116,0.11905981,-0.9106945,3.0883706,9.331401,-788.156,-658.171,-1005.847\r\n")
@@ -159,7 +159,7 @@ def test_rows_split_anywhere_give_the_same_readings(cuts, hash_end):
     if hash_end:
         stream = stream.replace(b"\r\n", b"#")
     cuts = sorted(cuts)
-    parts = [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)])]
+    parts = [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True)]
     dev = device(**TS_OPTS)
     assert readings(run(dev, parts)) == readings(run(device(**TS_OPTS), [stream]))
     assert dev.codec.stats.errors == 0

@@ -101,7 +101,7 @@ def test_deterministic_whatever_the_query_order():
     m = WavingMotion(7, loop_s=1.3)
     blocks = [t[i:i + 20] for i in range(0, t.size, 20)]
     late_first = [m.at_many(b) for b in reversed(blocks)][::-1]
-    for a, b in zip(whole, (np.concatenate(x) for x in zip(*late_first)), strict=True):
+    for a, b in zip(whole, (np.concatenate(x) for x in zip(*late_first, strict=True)), strict=True):
         assert np.array_equal(a, b)
     other = WavingMotion(8, loop_s=1.3).at_many(t)
     assert not np.allclose(whole[2], other[2])

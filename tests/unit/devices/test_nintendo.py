@@ -54,7 +54,8 @@ def run(url: str) -> tuple[object, list[Sample]]:
 
 
 # -- descriptor -----------------------------------------------------------------------------------
-@pytest.mark.skipif(not TRACE.exists(), reason="Switch Pro trace not found (../shared/traces must sit beside the project)")
+@pytest.mark.skipif(not TRACE.exists(),
+                    reason="Switch Pro trace not found (../shared/traces must sit beside the project)")
 def test_real_pro_descriptor_report_sizes_match_the_codec():
     tr = load_trace()
     assert (tr["vid"], tr["pid"]) == (0x057E, 0x2009)

@@ -261,7 +261,8 @@ def test_unmatched_addresses_are_counted_and_logged_once(caplog):
 def test_wrong_arguments_are_counted_framing_errors():
     dev = device()
     items = feed(dev, [osc_bundle([(f"/{UUID}/gyro", [0.5, 0.25]), (f"/{UUID}/accel", ["x", 0.0, 0.0]),
-                                   (f"/{UUID}/gravity", [True, 0.0, 0.0]), (f"/{UUID}/quaternion", [0.0, 0.0, 0.0, 1.0])])])
+                                   (f"/{UUID}/gravity", [True, 0.0, 0.0]),
+                                   (f"/{UUID}/quaternion", [0.0, 0.0, 0.0, 1.0])])])
     assert dev.codec.stats.framing_errors == 3 and dev.health()["bad_args"] == 3
     assert [s.stream for s in samples(items)] == ["zs/attitude"]
     assert any(isinstance(x, DeviceEvent) and x.kind is EventKind.PROTOCOL_ERRORS for x in items)
@@ -288,7 +289,8 @@ BAD_DATAGRAMS = {
     "truncated bundle": zigsim_snapshot()[:30],
     "negative element size (python-osc loops forever on it)": _negative_size(),
     "element size past the end": b"#bundle\x00" + struct.pack(">Q", 1) + struct.pack(">i", 400) + b"/a\x00\x00",
-    "element size not a multiple of 4": b"#bundle\x00" + struct.pack(">Q", 1) + struct.pack(">i", 5) + b"/a\x00\x00,\x00",
+    "element size not a multiple of 4":
+        b"#bundle\x00" + struct.pack(">Q", 1) + struct.pack(">i", 5) + b"/a\x00\x00,\x00",
     "element neither message nor bundle": b"#bundle\x00" + struct.pack(">Q", 1) + struct.pack(">i", 4) + b"xxxx",
     "unsupported type tag": b"/a\x00\x00,c\x00\x00\x00\x00\x00a",
     "type tags without comma": b"/a\x00\x00ff\x00\x00\x00\x00\x00\x00",

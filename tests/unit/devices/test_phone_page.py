@@ -55,7 +55,7 @@ def sim_chunks(duration_s: float = 3.0, **kw) -> list[Chunk]:
 
 
 def same(a: tuple, b: tuple) -> bool:
-    return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b))
+    return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b, strict=True))
 
 
 # -- codec -------------------------------------------------------------------------------------
@@ -96,7 +96,8 @@ def test_round_trip_of_every_frame_type():
         assert c.feed(data) == [f]
         assert c.encode(c.feed(data)[0]) == data
     # NaN goes out as null and comes back as NaN
-    f = PageData(1, None, None, ((1.0, NAN, NAN, NAN, 0.0, 0.0, 9.8, NAN, 0.0, 0.0, NAN),), ((2.0, NAN, 1.0, 2.0, NAN),))
+    f = PageData(1, None, None, ((1.0, NAN, NAN, NAN, 0.0, 0.0, 9.8, NAN, 0.0, 0.0, NAN),),
+                 ((2.0, NAN, 1.0, 2.0, NAN),))
     data = c.encode(f)
     assert b"NaN" not in data and json.loads(data)["m"][0][1] is None
     (g,) = c.feed(data)
@@ -279,7 +280,7 @@ def test_simulated_waving_comes_out_complete_and_in_order():
     imu = samples(items, "imu")
     assert len(imu) == len(rows) == 180 and len(samples(items, "user_acc")) == 180
     assert [s.t_device_ns for s in imu] == [round(r[0] * 1000) * 1000 for r in rows]
-    for s, r in zip(imu, rows):
+    for s, r in zip(imu, rows, strict=True):
         assert s.values == pytest.approx(r[4:7] + tuple(math.radians(x) for x in r[7:10]), rel=1e-14)
     assert [s.seq for s in imu] == list(range(180))
     # lying roughly flat, screen up: gravity reads +z
@@ -322,7 +323,7 @@ def test_seq_gaps_count_lost_messages():
 
 def test_hello_fills_info_without_readings_and_drops_the_token():
     d = device()
-    items = d.process_chunk(Chunk(page_hello(id="abc", platform="ios", ua="iPhone UA", screen=(390, 844),
+    items = d.process_chunk(Chunk(page_hello(page_id="abc", platform="ios", ua="iPhone UA", screen=(390, 844),
                                              orient=90.0, t=5.0, token="secret"), T0))
     assert samples(items) == []
     assert d.info["id"] == "abc" and d.info["platform"] == "ios" and d.info["ua"] == "iPhone UA"
@@ -357,5 +358,5 @@ def test_refeeding_the_same_chunks_gives_identical_samples():
     a = samples(feed_all(device(), chunks))
     b = samples(feed_all(device(), chunks))
     assert len(a) == len(b) > 100
-    assert all(x[:5] == y[:5] and same(x.values, y.values) for x, y in zip(a, b))
+    assert all(x[:5] == y[:5] and same(x.values, y.values) for x, y in zip(a, b, strict=True))
     assert samples(feed_all(device(), chunks), "user_acc") == []  # all-null acceleration

@@ -39,10 +39,11 @@ def samples(items, stream: str | None = None) -> list[Sample]:
 
 
 def same(a: tuple, b: tuple) -> bool:
-    return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b))
+    return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b, strict=True))
 
 
-def motion_message(mid: int, t0: int, n: int = 5, period_ns: int = 10_000_000, session: str = "s1") -> SensorLoggerMessage:
+def motion_message(mid: int, t0: int, n: int = 5, period_ns: int = 10_000_000,
+                   session: str = "s1") -> SensorLoggerMessage:
     """n samples of accelerometer, gyroscope, gravity, magnetometer and orientation."""
     ents = []
     for k in range(n):
@@ -98,7 +99,7 @@ def test_round_trip():
     d = json.loads(data)
     assert d["payload"][0]["values"]["x"] is None and set(d["payload"][1]["values"]) == {"qw", "qx", "qy", "qz"}
     (back,) = c.feed(data)
-    assert all(same(a.values, b.values) for a, b in zip(back.entries, m2.entries))
+    assert all(same(a.values, b.values) for a, b in zip(back.entries, m2.entries, strict=True))
     assert SensorLoggerMessage(0, "s", "d") == c.feed(c.encode(SensorLoggerMessage(0, "s", "d")))[0]  # empty payload
     with pytest.raises(TypeError):
         c.encode({"messageId": 1})
@@ -334,12 +335,12 @@ def test_refeeding_the_same_chunks_gives_identical_samples():
     for i in range(40):
         m = motion_message(i, T0 + i * 50_000_000, n=5)
         if i == 7:  # a null in the middle
-            m = m._replace(entries=(SensorEntry("accelerometer", T0 + i * 50_000_000 + 1, (NAN, 0.0, NAN)),)
-                           + m.entries)
+            m = m._replace(entries=(SensorEntry("accelerometer", T0 + i * 50_000_000 + 1, (NAN, 0.0, NAN)),
+                                    *m.entries))
         chunks.append(chunk(m, H0 + i * 50_000_000 + 30_000_000 + (i * 7919) % 13_000_000))
     first, dev = device(), device()
     a = [x for c in chunks for x in samples(first.process_chunk(c))]
     b = [x for c in chunks for x in samples(dev.process_chunk(c))]
     assert len(a) == len(b) == 40 * 25 + 1
-    assert all(x[:5] == y[:5] and same(x.values, y.values) for x, y in zip(a, b))
+    assert all(x[:5] == y[:5] and same(x.values, y.values) for x, y in zip(a, b, strict=True))
     assert dev.health()["lost_readings"] == 0 and dev.health()["lost_messages"] == 0

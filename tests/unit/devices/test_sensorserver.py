@@ -191,7 +191,8 @@ def test_malformed_messages_are_counted_not_raised(name):
 
 @settings(max_examples=300, deadline=None)
 @given(st.one_of(st.binary(max_size=300),
-                 st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=8),
+                 st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False)
+                              | st.text(max_size=8),
                               lambda c: st.lists(c, max_size=5) | st.dictionaries(
                                   st.sampled_from(["values", "timestamp", "accuracy", "type", "action", "x", "y"]), c,
                                   max_size=7), max_leaves=20).map(lambda o: json.dumps(o).encode())))

@@ -122,8 +122,8 @@ def test_ds4_real_calibration_gives_readme_values_and_kernel_scales(ds4_trace):
 def test_dualsense_real_calibration_gives_readme_values(ds_trace):
     raw = feature(ds_trace, 0x05)
     cal = parse_calibration(raw, "dualsense", USB)
-    flat = (*cal.gyro_bias, *(x for pm in zip(cal.gyro_plus, cal.gyro_minus) for x in pm), cal.speed_plus,
-            cal.speed_minus, *(x for pm in zip(cal.acc_plus, cal.acc_minus) for x in pm))
+    flat = (*cal.gyro_bias, *(x for pm in zip(cal.gyro_plus, cal.gyro_minus, strict=True) for x in pm), cal.speed_plus,
+            cal.speed_minus, *(x for pm in zip(cal.acc_plus, cal.acc_minus, strict=True) for x in pm))
     assert flat == (-1, -14, 4, 8861, -8866, 8850, -8878, 8890, -8879, 540, 540, 8187, -8187, 8067, -8295, 8199, -8196)
     sc = cal.scale()
     assert math.degrees(sc.gyro[0]) == pytest.approx(1080 / (8862 + 8865))

@@ -89,7 +89,7 @@ def test_cycle_values_and_device_time():
     imu = [x for x in items if isinstance(x, Sample) and x.stream == "w/imu"]
     eul = [x for x in items if isinstance(x, Sample) and x.stream == "w/euler"]
     assert len(imu) == 2 and len(eul) == 2
-    ax, ay, az, gx, gy, gz, temp = imu[0].values
+    ax, _ay, az, gx, _gy, _gz, temp = imu[0].values
     assert ax == pytest.approx(0.5 * 9.80665, abs=ACC_SCALE) and az == pytest.approx(9.80665, abs=ACC_SCALE)
     assert gx == pytest.approx(math.radians(100), abs=GYRO_SCALE) and temp == pytest.approx(21.5)
     assert eul[0].values == pytest.approx((10.0, 20.0, -30.0), abs=0.01)
@@ -104,7 +104,7 @@ def test_lost_time_packet_is_extrapolated_and_counted():
     codec = WitMotionCodec()
     chunks = []
     for i in range(5):
-        data, pk = encode_cycle(codec, (0, 0, 1), (0, 0, 0), (0, 0, 0), 20, 1000 + 10 * i)
+        data, _pk = encode_cycle(codec, (0, 0, 1), (0, 0, 0), (0, 0, 0), 20, 1000 + 10 * i)
         if i == 3:
             data = data[11:]  # the time packet of cycle 3 was lost
         chunks.append(data)
