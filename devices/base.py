@@ -1,10 +1,14 @@
 """Devices join a Transport and a Codec and turn bytes into samples with two clocks.
 
-``Device`` is the model class ("driver" in other projects): it declares its streams, performs its
-handshake, maps codec frames to readings, and stamps them through one ``ClockSync`` per stream.
-``DeviceReader`` is the one thread per device that polls it, publishes onto the bus, and carries
-the reconnect policy: an unplugged device is retried with backoff and comes back with the same
-stream names, sequence numbering and calibration; the gap is an event in the session.
+This module owns the device layer's machinery, the same for every kind: ``Device``, the model class
+("driver" in other projects), generic in its codec; the per-chunk path (``process_chunk``) and the
+vectorised batch path (``process_chunks`` with a kind's ``decode_batch``); the stamping of readings
+through one ``ClockSync`` per clock domain and their sequence numbers, whose gaps show lost
+readings (one implementation for both paths); and ``DeviceReader``, the one thread per device that
+polls it, publishes onto the bus, and carries the reconnect policy: an unplugged device is retried
+with backoff and comes back with the same stream names, sequence numbering and calibration; the gap
+is an event in the session. A kind's module (``devices.witmotion``, ...) declares its streams,
+performs its handshake and maps codec frames to readings.
 """
 
 from __future__ import annotations
