@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 from _common import check, header, summary
 
-from capture.app.puppet_run import attitude_quaternions
+from capture.app.puppet_input import attitude_quaternions
 from capture.sample import DeviceIdentity, StreamInfo
 from retarget.puppet import PhoneInput, PuppetRetargeter
 from retarget.vmc import VmcEncoder, build_frame, decode_frame, encode_frame

@@ -113,7 +113,7 @@ class CalibrationStore:
             ConfigError: the directory cannot be written.
         """
         p = self.path_for(identity)
-        doc = calibration_document(identity, cal, getattr(self.clock, "wall_time_s", lambda: None)(), note)
+        doc = calibration_document(identity, cal, self.clock.wall_time_s(), note)
         tmp = p.with_suffix(".json.tmp")
         try:
             self.dir.mkdir(parents=True, exist_ok=True)

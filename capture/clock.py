@@ -1,6 +1,7 @@
 """The only place perfcap reads the OS clock.
 
-``Clock`` is a protocol with ``now_ns()`` (host monotonic nanoseconds) and ``sleep_until_ns()``.
+``Clock`` is a protocol with ``now_ns()`` (host monotonic nanoseconds), ``sleep_until_ns()`` and
+``wall_time_s()`` (seconds since the epoch, for metadata only).
 ``MonotonicClock`` is the real one; ``ManualClock`` is advanced by hand in tests, so nothing
 in a test sleeps.
 """
@@ -19,6 +20,10 @@ class Clock(Protocol):
     def now_ns(self) -> int: ...
 
     def sleep_until_ns(self, deadline_ns: int) -> None: ...
+
+    def wall_time_s(self) -> float:
+        """Wall-clock seconds since the epoch, for session metadata only (never for samples)."""
+        ...
 
 
 class MonotonicClock:

@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import socket
+import threading
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from capture.clock import MONOTONIC
 from capture.errors import SessionError, SessionExistsError
 from capture.sample import (
     NO_TIME,
@@ -275,11 +277,9 @@ class SessionWriter:
             raise SessionError(f"cannot create {path}: {exc.strerror or exc}", path=path) from exc
         self._w = Writer(self._f, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._w.start(profile="perfcap", library="perfcap")
-        import time as _t
-
         from capture import __version__
         m = {"format_version": FORMAT_VERSION, "perfcap_version": __version__, "host": socket.gethostname(),
-             "start_wall_time_s": repr(wall_time_s if wall_time_s is not None else _t.time())}
+             "start_wall_time_s": repr(wall_time_s if wall_time_s is not None else MONOTONIC.wall_time_s())}
         m.update(meta or {})
         self._w.add_metadata("perfcap.session", m)
         self._raw_schema = self._w.register_schema("perfcap.RawBlock", "text", RAW_SCHEMA_DOC.encode())
@@ -402,7 +402,7 @@ class SessionReader:
     """
 
     _cache: dict[tuple[str, int, int], SessionReader] = {}
-    _cache_lock = __import__("threading").Lock()
+    _cache_lock = threading.Lock()
 
     def __init__(self, path: str, progress: Any = None) -> None:
         self.path = path

@@ -8,7 +8,8 @@
 * ``post_sensorlogger`` / ``send_udp``: Sensor Logger pushes and OSC/HyperIMU datagrams.
 
 ``perfcap sim phone --url wss://HOST:PORT/ws/phone --token T`` runs a ``SimPagePhone`` from the
-command line (another terminal, another machine).
+command line (another terminal, another machine); ``--report`` says on stdout when its page clock
+started and, at the end, what it sent (``perfcap demo`` runs it so).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
+import signal
 import socket
 import sys
 import threading
@@ -29,6 +32,9 @@ from sim_devices.motion import PHONE_MOTIONS, phone_motion
 from sim_devices.phone_sim import page_hello, page_messages, page_pong
 
 log = logging.getLogger(__name__)
+
+#: where ``perfcap sim phone`` finds the pairing token when ``--token`` is not given
+TOKEN_ENV = "PERFCAP_SIM_TOKEN"
 
 
 def _ssl_arg(fingerprint: str | None, url: str) -> Any:
@@ -253,7 +259,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="perfcap sim phone",
                                 description="a simulated phone running perfcap's page, streaming to perfcap serve")
     p.add_argument("--url", required=True, help="wss://HOST:PORT/ws/phone (as printed by perfcap serve)")
-    p.add_argument("--token", required=True, help="the pairing token printed by perfcap serve")
+    p.add_argument("--token", help=f"the pairing token printed by perfcap serve (default: ${TOKEN_ENV})")
     p.add_argument("--fingerprint", help="the certificate fingerprint printed by perfcap serve (pinned)")
     p.add_argument("--id", default="sim-phone", help="the phone's id")
     p.add_argument("--rate", type=float, default=60.0, help="devicemotion rate, Hz")
@@ -262,11 +268,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--motion", choices=PHONE_MOTIONS, default="waving",
                    help="waving: seeded free waving; puppeteer: a choreography for perfcap puppet (walk, run, "
                         "hop, crouch)")
+    p.add_argument("--report", action="store_true",
+                   help="JSON lines on stdout: once paired, when the page clock started (t0_host_ns on the host's"
+                        " monotonic clock, t0_ms on the page's), then at the end what was sent; SIGTERM stops it"
+                        " cleanly")
     a = p.parse_args(argv)
-    phone = SimPagePhone(a.url, a.token, a.id, rate_hz=a.rate, duration_s=a.duration, seed=a.seed,
+    token = a.token if a.token is not None else os.environ.get(TOKEN_ENV)
+    if not token:
+        p.error(f"the pairing token: give --token or set {TOKEN_ENV}")
+    phone = SimPagePhone(a.url, token, a.id, rate_hz=a.rate, duration_s=a.duration, seed=a.seed,
                          fingerprint=a.fingerprint, motion=a.motion)
+
+    async def go() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError):   # (no signal handlers on Windows)
+                loop.add_signal_handler(sig, phone.stop)
+        task = loop.create_task(phone.run())
+        if a.report:   # once paired, so whoever waits for this line knows the phone is streaming
+            while (phone.t0_host_ns is None or phone.device is None) and not task.done():
+                await asyncio.sleep(0.001)
+            if phone.device is not None:
+                print(json.dumps({"t0_host_ns": phone.t0_host_ns, "t0_ms": phone.t0_ms, "device": phone.device}),
+                      flush=True)
+        await task
+
     try:
-        asyncio.run(phone.run())
+        asyncio.run(go())
     except KeyboardInterrupt:
         return 130
     except Exception as exc:  # noqa: BLE001 - one line for the user
@@ -275,5 +303,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if phone.close_code and phone.device is None:
         print(f"perfcap sim phone: refused ({phone.close_code}): {phone.close_reason}", file=sys.stderr)
         return 1
+    if a.report:
+        print(json.dumps({"sent": phone.sent, "events": phone.events, "device": phone.device}), flush=True)
     print(f"sent {phone.sent} messages ({phone.events} motion events) as device {phone.device}", file=sys.stderr)
     return 0

@@ -1,72 +1,245 @@
-"""Architecture rules (STYLE.md R1): production code never imports sim_devices; the kernel imports
-nothing else from the project; cycles/retarget see only samples (and the quaternion maths)."""
+"""Architecture rules (docs/architecture.md), checked on the syntax tree of every product module.
+
+The layers, each importing only from the layers below it::
+
+    capture.app                              application: the only place that wires packages together
+    devices, cycles, retarget, sim_devices   domain (never import capture.app)
+    capture (outside capture.app)            core: imports only capture.*
+    capture.{sample,clock,errors,quat,clocksync}   kernel: imports nothing else from the project
+
+cycles and retarget see only the kernel; no product code reaches sim_devices by any route (an import,
+importlib, or loading an entry point outside the scheme and simulator registries); only ``Clock``
+reads the OS clock, whatever the module is imported as. Each rule is a function returning its
+violations, and each is shown failing on a module written to break it.
+"""
 
 from __future__ import annotations
 
 import ast
+from dataclasses import dataclass
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("capture", "devices", "cycles", "retarget", "sim_devices")
+PRODUCT = ("capture", "devices", "cycles", "retarget")
+KERNEL = frozenset({"capture.sample", "capture.clock", "capture.errors", "capture.quat", "capture.clocksync"})
+#: modules that may load plugins by entry point: the transport, device-kind and simulator registries
+REGISTRIES = frozenset({"devices/__init__.py", "devices/transports/__init__.py", "capture/app/cli/sim.py"})
+CLOCK_MODULE = "capture/clock.py"
+#: what reads the OS clock: functions of ``time`` and the "now" constructors of ``datetime``
+TIME_READS = frozenset({"time", "time_ns", "monotonic", "monotonic_ns", "perf_counter", "perf_counter_ns",
+                        "process_time", "process_time_ns", "thread_time", "thread_time_ns", "clock_gettime",
+                        "clock_gettime_ns", "localtime", "gmtime", "ctime", "asctime", "strftime"})
+DATETIME_READS = frozenset({"now", "utcnow", "today"})
 
 
-def imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text(), str(path))
-    out = set()
-    for node in ast.walk(tree):
+@dataclass(frozen=True)
+class Module:
+    rel: str          # path from the project root, e.g. "capture/bus.py"
+    name: str         # dotted name, e.g. "capture.bus"
+    tree: ast.Module
+
+    @classmethod
+    def parse(cls, rel: str, text: str) -> Module:
+        name = rel[:-3].replace("/", ".").removesuffix(".__init__")
+        return cls(rel, name, ast.parse(text, rel))
+
+
+def product_modules(packages: tuple[str, ...] = PACKAGES) -> list[Module]:
+    mods = []
+    for pkg in packages:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            rel = f.relative_to(ROOT).as_posix()
+            mods.append(Module.parse(rel, f.read_text(encoding="utf-8")))
+    return mods
+
+
+def project_imports(m: Module) -> set[str]:
+    """The project modules ``m`` imports (absolute or relative, at any depth of the file)."""
+    out: set[str] = set()
+    for node in ast.walk(m.tree):
         if isinstance(node, ast.Import):
-            out |= {a.name.split(".")[0] if a.name.split(".")[0] not in PACKAGES else a.name for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            out.add(node.module)
-    return out
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = m.name.split(".")
+                if not m.rel.endswith("__init__.py"):
+                    base = base[:-1]
+                base = base[: len(base) - node.level + 1]
+                mod = ".".join([*base, node.module] if node.module else base)
+            else:
+                mod = node.module or ""
+            out.add(mod)
+            out |= {f"{mod}.{a.name}" for a in node.names}  # `from capture import app` imports capture.app
+    return {i for i in out if i.split(".")[0] in PACKAGES}
 
 
-def project_imports(pkg: str) -> dict[str, set[str]]:
-    res = {}
-    for f in (ROOT / pkg).rglob("*.py"):
-        res[str(f.relative_to(ROOT))] = {m for m in imports(f) if m.split(".")[0] in PACKAGES}
-    return res
+def _within(mod: str, pkg: str) -> bool:
+    return mod == pkg or mod.startswith(pkg + ".")
 
 
-def test_production_code_never_imports_sim_devices():
-    for pkg in ("capture", "devices", "cycles", "retarget"):
-        for f, mods in project_imports(pkg).items():
-            assert not any(m.startswith("sim_devices") for m in mods), f"{f} imports sim_devices"
+# -- the rules ------------------------------------------------------------------------------------------
+def core_imports_only_capture(m: Module) -> list[str]:
+    if not _within(m.name, "capture") or _within(m.name, "capture.app"):
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m))
+            if not _within(i, "capture") or _within(i, "capture.app")]
 
 
-def test_kernel_imports_only_kernel():
-    kernel = {"capture.sample", "capture.clock", "capture.errors", "capture.clocksync", "capture.quat"}
-    for name in kernel:
-        f = ROOT / (name.replace(".", "/") + ".py")
-        mods = {m for m in imports(f) if m.split(".")[0] in PACKAGES}
-        assert mods <= kernel, f"{name} imports {mods - kernel}"
+def domain_never_imports_the_app(m: Module) -> list[str]:
+    if _within(m.name, "capture"):
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m)) if _within(i, "capture.app")]
 
 
-def test_cycles_and_retarget_see_only_samples():
-    for pkg in ("cycles", "retarget"):
-        for f, mods in project_imports(pkg).items():
-            assert mods <= {"capture.sample", "capture.errors", "capture.quat"} | {m for m in mods if m.startswith(pkg)}, f
+def cycles_and_retarget_see_only_the_kernel(m: Module) -> list[str]:
+    pkg = m.name.split(".")[0]
+    if pkg not in ("cycles", "retarget"):
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m))
+            if not _within(i, pkg) and not any(_within(i, k) for k in KERNEL)
+            and i != "capture"]   # `from capture.quat import ...` also records "capture.quat.<name>"
 
 
-def test_only_clock_reads_the_os_clock():
-    allowed = {"capture/clock.py", "capture/app/cli/__init__.py"}
-    for pkg in ("capture", "devices", "sim_devices", "cycles", "retarget"):
-        for f in (ROOT / pkg).rglob("*.py"):
-            rel = str(f.relative_to(ROOT))
-            if rel in allowed:
-                continue
-            text = f.read_text()
-            for call in ("time.monotonic", "time.time(", "time.perf_counter", "datetime.now"):
-                assert call not in text, f"{rel} reads the OS clock ({call})"
+def kernel_imports_only_the_kernel(m: Module) -> list[str]:
+    if m.name not in KERNEL:
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m))
+            if not any(_within(i, k) for k in KERNEL) and i != "capture"]
+
+
+def _docstrings(tree: ast.Module) -> set[int]:
+    ids = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                ids.add(id(first.value))
+    return ids
+
+
+def _called_name(call: ast.Call) -> str:
+    f = call.func
+    return f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+
+
+def product_never_reaches_sim_devices(m: Module) -> list[str]:
+    if _within(m.name, "sim_devices"):
+        return []
+    bad = [f"{m.rel} imports {i}" for i in sorted(project_imports(m)) if _within(i, "sim_devices")]
+    docs = _docstrings(m.tree)
+    for node in ast.walk(m.tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs \
+                and "sim_devices" in node.value:
+            bad.append(f"{m.rel}:{node.lineno} names sim_devices in code ({node.value[:40]!r})")
+        if not isinstance(node, ast.Call) or m.rel in REGISTRIES:
+            continue
+        called = _called_name(node)
+        if called == "entry_points":
+            bad.append(f"{m.rel}:{node.lineno} loads entry points: only the registries may")
+        elif called in ("import_module", "__import__") and not (
+                node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            bad.append(f"{m.rel}:{node.lineno} imports a module named at run time: only the registries may")
+    return bad
+
+
+def only_clock_reads_the_os_clock(m: Module) -> list[str]:
+    if m.rel == CLOCK_MODULE:
+        return []
+    time_names: set[str] = set()       # what the time module is called here
+    datetime_names: set[str] = set()   # ... and the datetime module, and its datetime/date classes
+    bad = []
+    for node in ast.walk(m.tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name == "time":
+                    time_names.add(a.asname or "time")
+                elif a.name == "datetime":
+                    datetime_names.add(a.asname or "datetime")
+        elif isinstance(node, ast.ImportFrom) and node.module in ("time", "datetime") and not node.level:
+            for a in node.names:
+                if node.module == "time" and a.name in TIME_READS:
+                    bad.append(f"{m.rel}:{node.lineno} imports time.{a.name}")
+                elif node.module == "datetime" and a.name in ("datetime", "date"):
+                    datetime_names.add(a.asname or a.name)
+    for node in ast.walk(m.tree):
+        if not isinstance(node, ast.Attribute):
+            continue
+        base = node.value
+        if isinstance(base, ast.Name) and base.id in time_names and node.attr in TIME_READS:
+            bad.append(f"{m.rel}:{node.lineno} reads the OS clock ({base.id}.{node.attr})")
+        elif node.attr in DATETIME_READS and (
+                (isinstance(base, ast.Name) and base.id in datetime_names)
+                or (isinstance(base, ast.Attribute) and isinstance(base.value, ast.Name)
+                    and base.value.id in datetime_names and base.attr in ("datetime", "date"))):
+            bad.append(f"{m.rel}:{node.lineno} reads the OS clock ({ast.unparse(node)})")
+    return bad
+
+
+RULES = [core_imports_only_capture, domain_never_imports_the_app, cycles_and_retarget_see_only_the_kernel,
+         kernel_imports_only_the_kernel, product_never_reaches_sim_devices, only_clock_reads_the_os_clock]
+
+
+@pytest.mark.parametrize("rule", RULES, ids=lambda r: r.__name__)
+def test_the_code_keeps_the_rule(rule):
+    packages = PRODUCT if rule is product_never_reaches_sim_devices else PACKAGES
+    bad = [v for m in product_modules(packages) for v in rule(m)]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_kernel_exists_as_named():
+    for name in KERNEL:
+        assert (ROOT / (name.replace(".", "/") + ".py")).is_file(), name
+
+
+# -- each rule fails when broken ------------------------------------------------------------------------
+BROKEN = [
+    (core_imports_only_capture, "capture/bus.py", "from devices import open_device\n"),
+    (core_imports_only_capture, "capture/session.py", "def f():\n    from capture.app.config import load_config\n"),
+    (core_imports_only_capture, "capture/orientation/fusion.py", "from ...retarget import skeleton\n"),
+    (domain_never_imports_the_app, "devices/base.py", "import capture.app.orchestrator\n"),
+    (domain_never_imports_the_app, "retarget/puppet.py", "from capture import app\n"),
+    (cycles_and_retarget_see_only_the_kernel, "cycles/edit.py", "from capture.bus import SampleBus\n"),
+    (cycles_and_retarget_see_only_the_kernel, "retarget/vmc.py", "from devices.base import Device\n"),
+    (kernel_imports_only_the_kernel, "capture/sample.py", "from capture.session import SessionReader\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py", "from sim_devices.phone_client import SimPagePhone\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py",
+     "import importlib\nm = importlib.import_module('sim_devices.phone_client')\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py",
+     "import importlib\nmod = ep.load().__module__\nm = importlib.import_module(mod)\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py",
+     "from importlib.metadata import entry_points\nmain = entry_points(group='perfcap.sims')['phone'].load()\n"),
+    (product_never_reaches_sim_devices, "devices/phone.py", "MOD = 'sim_devices.phone_sim'\n"),
+    (only_clock_reads_the_os_clock, "capture/recorder.py", "import time as _t\nt = _t.monotonic()\n"),
+    (only_clock_reads_the_os_clock, "devices/base.py", "from time import perf_counter\n"),
+    (only_clock_reads_the_os_clock, "capture/app/cli/record.py", "import time\nt = time.time()\n"),
+    (only_clock_reads_the_os_clock, "capture/app/serve/tls.py",
+     "import datetime as _dt\nnow = _dt.datetime.now(_dt.UTC)\n"),
+    (only_clock_reads_the_os_clock, "sim_devices/synth.py", "from datetime import datetime as D\nD.utcnow()\n"),
+]
+
+
+@pytest.mark.parametrize(("rule", "rel", "code"), BROKEN, ids=[f"{r.__name__}:{p}" for r, p, _ in BROKEN])
+def test_each_rule_fails_when_broken(rule, rel, code):
+    assert rule(Module.parse(rel, code)), f"{rule.__name__} let this through in {rel}:\n{code}"
+
+
+def test_what_the_rules_allow():
+    """Sleeping is no clock read, a docstring may name sim_devices, the kernel may import itself."""
+    assert not only_clock_reads_the_os_clock(Module.parse("capture/recorder.py", "import time\ntime.sleep(0)\n"))
+    assert not product_never_reaches_sim_devices(
+        Module.parse("devices/transports/__init__.py", '"""Simulators live in sim_devices."""\n'
+                     "from importlib.metadata import entry_points\neps = entry_points(group='perfcap.transports')\n"))
+    assert not kernel_imports_only_the_kernel(Module.parse("capture/clocksync.py", "from capture.sample import X\n"))
+    assert not core_imports_only_capture(Module.parse("capture/app/demo.py", "from devices import open_device\n"))
 
 
 def test_quaternion_maths_lives_in_one_place():
-    """One concept, one place (STYLE.md): the Hamilton product is written only in capture/quat.py."""
-    for pkg in ("capture", "devices", "cycles", "retarget", "sim_devices"):
-        for f in (ROOT / pkg).rglob("*.py"):
-            rel = str(f.relative_to(ROOT))
-            if rel == "capture/quat.py":
-                continue
-            tree = ast.parse(f.read_text(), rel)
-            defs = {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}
-            assert not defs & {"quat_mul", "qmul", "_qmul", "quat_slerp", "qslerp", "quat_rotate"}, rel
+    """One concept, one place: the Hamilton product is written only in capture/quat.py."""
+    for m in product_modules():
+        if m.rel == "capture/quat.py":
+            continue
+        defs = {n.name for n in ast.walk(m.tree) if isinstance(n, ast.FunctionDef)}
+        assert not defs & {"quat_mul", "qmul", "_qmul", "quat_slerp", "qslerp", "quat_rotate"}, m.rel

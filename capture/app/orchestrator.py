@@ -13,11 +13,11 @@ from collections.abc import Callable, Mapping, Sequence
 
 from capture.bus import Overflow, SampleBus, Subscriber
 from capture.clock import MONOTONIC, Clock
-from capture.errors import CaptureError, ConfigError, EndOfStream
+from capture.errors import ConfigError
 from capture.recorder import SessionRecorder
 from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
 from capture.session import SessionWriter
-from devices import Device, DeviceReader, DeviceSpec, DeviceState, ReconnectPolicy, open_device
+from devices import Device, DeviceReader, DeviceSpec, ReconnectPolicy, open_device
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +182,7 @@ class Capture:
         writer = None
         if output is not None:  # before any thread starts: a bad path must leave nothing running
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
-                                   wall_time_s=getattr(clock, "wall_time_s", lambda: None)())
+                                   wall_time_s=clock.wall_time_s())
         self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
         self.processors: list[Any] = []
         self.orientation: Any = None
@@ -261,7 +261,7 @@ class Capture:
             if self.recorder is not None:
                 raise ConfigError(f"already recording to {self.output}; stop that recording first")
             writer = SessionWriter(output, overwrite=overwrite, fsync=self._fsync, meta=meta,
-                                   wall_time_s=getattr(self.clock, "wall_time_s", lambda: None)())
+                                   wall_time_s=self.clock.wall_time_s())
             try:
                 self._attach_recorder(writer)
             except BaseException:
@@ -373,103 +373,13 @@ class Capture:
             report = self.stop()
         return report
 
-    def run_merged(self, duration_s: float | None = None, window_s: float = 5.0,
-                   stop: threading.Event | None = None,
-                   on_tick: Callable[[Capture, float], None] | None = None, tick_s: float = 1.0) -> CaptureReport:
-        """Drive every device from this one thread, merged by recorded time: no reader threads, so
-        no contention between them, and a deterministic order on the bus.
-
-        Sources that may be read as fast as possible (``batches``: an as-fast-as-possible replay)
-        are read in ``window_s`` steps of recorded time and decoded in vectorised runs. Paced
-        sources (a replay at a speed factor) are read chunk by chunk, always the device whose next
-        chunk is due first; the transport sleeps until that chunk's deadline. Every transport must
-        offer ``first_time_ns()`` (as ``replay://`` does).
-
-        Raises:
-            ConfigError: a device's transport cannot be driven this way.
-        """
-        for d in self.devices:
-            if not hasattr(d.transport, "first_time_ns"):
-                raise ConfigError(f"device {d.name}: its transport cannot be driven by recorded time")
-        self._t_start = self.clock.now_ns()
-        publish_many = self.bus.publish_many
-        active: list[Device] = []
-        next_tick = self._t_start + int(tick_s * 1e9)
-
-        def finished(d: Device) -> None:
-            publish_many(d.finish())
-            d.state = DeviceState.FINISHED
-            self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(), "source exhausted"))
-            active.remove(d)
-
-        def time_up() -> bool:
-            now = self.clock.now_ns()
-            nonlocal next_tick
-            if on_tick and now >= next_tick:
-                on_tick(self, (now - self._t_start) / 1e9)
-                next_tick = now + int(tick_s * 1e9)
-            return (stop is not None and stop.is_set()) or (
-                duration_s is not None and now - self._t_start >= duration_s * 1e9)
-
-        try:
-            for d in self.devices:
-                try:
-                    publish_many(d.open())
-                except EndOfStream:
-                    d.state = DeviceState.FINISHED
-                    self.bus.publish(DeviceEvent(d.name, EventKind.FINISHED, self.clock.now_ns(), "empty"))
-                    continue
-                self.bus.publish(DeviceEvent(d.name, EventKind.STREAMING, self.clock.now_ns()))
-                active.append(d)
-            batched = [d for d in active if getattr(d.transport, "batches", False)]
-            firsts = [t for t in (d.transport.first_time_ns() for d in batched) if t is not None]  # type: ignore[attr-defined]
-            step = int(window_s * 1e9)
-            edge = (min(firsts) if firsts else 0) + step
-            while active and not time_up():
-                # as-fast-as-possible sources: everything up to the window edge, vectorised
-                for d in [d for d in active if getattr(d.transport, "batches", False)]:
-                    try:
-                        while True:
-                            chunks = d.transport.read_many(0.0, 1 << 20, edge)  # type: ignore[attr-defined]
-                            if not len(chunks):
-                                break
-                            publish_many(d.process_chunks(chunks))
-                    except EndOfStream:
-                        finished(d)
-                edge += step
-                # paced sources: chunk by chunk, the earliest first, until the window edge
-                paced = [d for d in active if not getattr(d.transport, "batches", False)]
-                while paced and not time_up():
-                    times = [(d.transport.first_time_ns(), i) for i, d in enumerate(paced)]  # type: ignore[attr-defined]
-                    t_next, i = min((t, i) for t, i in times if t is not None) if any(
-                        t is not None for t, _ in times) else (None, 0)
-                    d = paced[i]
-                    try:
-                        items = d.poll(0.1)
-                    except EndOfStream:
-                        finished(d)
-                        paced.remove(d)
-                        continue
-                    if items:
-                        publish_many(items)
-                    if t_next is None:
-                        continue
-                    if batched and t_next >= edge:
-                        break
-        except CaptureError as exc:
-            log.error("replay stopped: %s", exc)
-            raise
-        finally:
-            for d in self.devices:
-                if d in active:  # stopped early: still emit what the device had assembled
-                    publish_many(d.finish())
-                try:
-                    d.close()
-                except CaptureError:
-                    pass
-                self.bus.publish_many(d.clock_states())
-            report = self.stop()
-        return report
+    def start_driven(self) -> int:
+        """Mark the capture started for a caller that drives every device from its own thread (the
+        merged replay, ``capture.app.replay.run_merged``) instead of reader threads; returns the start
+        time (host ns)."""
+        with self._lock:
+            self._t_start = self.clock.now_ns()
+        return self._t_start
 
     def stop(self) -> CaptureReport:
         """Stop readers, drain every subscriber (the recorder writes everything), close the session."""

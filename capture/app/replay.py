@@ -1,8 +1,10 @@
 """Whole-session replay: every recorded device back through its codec onto a bus, on one shared
-timeline, with the replayed samples checked against the recorded ones.
+timeline, with the replayed samples checked against the recorded ones (``ReplayVerifier``), and the
+merged fast path that drives every device from one thread by recorded time (``run_merged``).
 
 Replay is reached through the ``replay://`` transport (which lives with the simulators); this
-module only builds the URLs, so production code still never imports ``sim_devices``.
+module only builds the URLs and uses the abilities the transport declares (``BatchSource``,
+``RecordedTimeline``), so production code still never imports ``sim_devices``.
 """
 
 from __future__ import annotations
@@ -14,14 +16,16 @@ from typing import Any
 from collections.abc import Callable
 from urllib.parse import quote
 
-from capture.bus import Overflow, Subscriber
-from capture.clock import MONOTONIC, Clock
-from capture.errors import SessionError
-from capture.app.orchestrator import Capture, CaptureReport
 import numpy as np
 
-from capture.sample import Sample, SampleBatch
+from capture.app.orchestrator import Capture, CaptureReport
+from capture.bus import Overflow, Subscriber
+from capture.clock import MONOTONIC, Clock
+from capture.errors import CaptureError, ConfigError, EndOfStream, SessionError
+from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
 from capture.session import SessionReader
+from devices import Device, DeviceState
+from devices.transports.base import BatchSource, RecordedTimeline
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +112,108 @@ def session_span(reader: SessionReader) -> tuple[int, int]:
     return min(s[0] for s in spans), max(s[1] for s in spans)
 
 
+def run_merged(cap: Capture, duration_s: float | None = None, window_s: float = 5.0,
+               stop: threading.Event | None = None,
+               on_tick: Callable[[Capture, float], None] | None = None, tick_s: float = 1.0) -> CaptureReport:
+    """Drive every device of ``cap`` from this one thread, merged by recorded time: no reader threads,
+    so no contention between them, and a deterministic order on the bus.
+
+    Sources that may be read as fast as possible (``BatchSource.batches``: an as-fast-as-possible
+    replay) are read in ``window_s`` steps of recorded time and decoded in vectorised runs. Paced
+    sources (a replay at a speed factor) are read chunk by chunk, always the device whose next chunk is
+    due first; the transport sleeps until that chunk's deadline. Every transport must be a
+    ``BatchSource`` (as ``replay://`` is).
+
+    Raises:
+        ConfigError: a device's transport cannot be driven this way.
+    """
+    sources: dict[str, BatchSource] = {}
+    for d in cap.devices:
+        if not isinstance(d.transport, BatchSource):
+            raise ConfigError(f"device {d.name}: its transport cannot be driven by recorded time")
+        sources[d.name] = d.transport
+    bus, clock = cap.bus, cap.clock
+    t_start = cap.start_driven()
+    publish_many = bus.publish_many
+    active: list[Device] = []
+    next_tick = t_start + int(tick_s * 1e9)
+
+    def finished(d: Device) -> None:
+        publish_many(d.finish())
+        d.state = DeviceState.FINISHED
+        bus.publish(DeviceEvent(d.name, EventKind.FINISHED, clock.now_ns(), "source exhausted"))
+        active.remove(d)
+
+    def time_up() -> bool:
+        now = clock.now_ns()
+        nonlocal next_tick
+        if on_tick and now >= next_tick:
+            on_tick(cap, (now - t_start) / 1e9)
+            next_tick = now + int(tick_s * 1e9)
+        return (stop is not None and stop.is_set()) or (
+            duration_s is not None and now - t_start >= duration_s * 1e9)
+
+    try:
+        for d in cap.devices:
+            try:
+                publish_many(d.open())
+            except EndOfStream:
+                d.state = DeviceState.FINISHED
+                bus.publish(DeviceEvent(d.name, EventKind.FINISHED, clock.now_ns(), "empty"))
+                continue
+            bus.publish(DeviceEvent(d.name, EventKind.STREAMING, clock.now_ns()))
+            active.append(d)
+        batched = [d for d in active if sources[d.name].batches]
+        firsts = [t for t in (sources[d.name].first_time_ns() for d in batched) if t is not None]
+        step = int(window_s * 1e9)
+        edge = (min(firsts) if firsts else 0) + step
+        while active and not time_up():
+            # as-fast-as-possible sources: everything up to the window edge, vectorised
+            for d in [d for d in active if sources[d.name].batches]:
+                try:
+                    while True:
+                        chunks = sources[d.name].read_many(0.0, 1 << 20, edge)
+                        if not len(chunks):
+                            break
+                        publish_many(d.process_chunks(chunks))
+                except EndOfStream:
+                    finished(d)
+            edge += step
+            # paced sources: chunk by chunk, the earliest first, until the window edge
+            paced = [d for d in active if not sources[d.name].batches]
+            while paced and not time_up():
+                times = [(sources[d.name].first_time_ns(), i) for i, d in enumerate(paced)]
+                due = [(t, i) for t, i in times if t is not None]
+                t_next, i = min(due) if due else (None, 0)
+                d = paced[i]
+                try:
+                    items = d.poll(0.1)
+                except EndOfStream:
+                    finished(d)
+                    paced.remove(d)
+                    continue
+                if items:
+                    publish_many(items)
+                if t_next is None:
+                    continue
+                if batched and t_next >= edge:
+                    break
+    except CaptureError as exc:
+        log.error("replay stopped: %s", exc)
+        raise
+    finally:
+        for d in cap.devices:
+            if d in active:  # stopped early: still emit what the device had assembled
+                publish_many(d.finish())
+            try:
+                d.close()
+            except CaptureError:
+                pass
+            bus.publish_many(d.clock_states())
+        report = cap.stop()
+    return report
+
+
 def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify: bool = True,
                    output: str | None = None, overwrite: bool = False, stop: threading.Event | None = None,
                    on_tick: Callable[[Capture, float], None] | None = None, duration_s: float | None = None,
@@ -143,9 +249,8 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     recorded_orient = {n: i for n, i in reader.streams.items() if i.kind == "orientation"}
     new_streams: set[str] = set()
     if orientation or (orientation is None and recorded_orient):
-        from capture.calibration_store import parse_calibration_document
-        from capture.errors import ConfigError
         from capture.app.orchestrator import CALIBRATION_KEY
+        from capture.calibration_store import parse_calibration_document
 
         first = next(iter(recorded_orient.values()), None)
         flt = orientation_filter or (first.extra.get("filter") if first and first.extra else None) or "fusion"
@@ -170,16 +275,16 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     # One timeline for every device, fixed after all setup so the first chunks are not late.
     start = clock.now_ns() + 20_000_000
     for d in cap.devices:
-        set_timeline = getattr(d.transport, "set_timeline", None)
-        if set_timeline is not None:
-            set_timeline(start, t0)
+        if isinstance(d.transport, RecordedTimeline):
+            d.transport.set_timeline(start, t0)
     if speed == 0 and loop:
         report = cap.run(duration_s, stop=stop, on_tick=on_tick)  # endless vectorised loops: reader threads
     else:
-        report = cap.run_merged(duration_s, stop=stop, on_tick=on_tick)
+        report = run_merged(cap, duration_s, stop=stop, on_tick=on_tick)
     lateness: list[int] = []
     for d in cap.devices:
-        lateness.extend(getattr(d.transport, "lateness_ns", []))
+        if isinstance(d.transport, RecordedTimeline):
+            lateness.extend(d.transport.lateness_ns)
     result = verifier.result() if verifier else None
     if result is not None:
         # Streams whose recorded blocks (or whose device's raw blocks) were damaged cannot be compared.
@@ -200,4 +305,4 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     return ReplayReport(report, result, lateness, (t_end - t0) / 1e9, replayed, early)
 
 
-__all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "session_span"]
+__all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "run_merged", "session_span"]

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from cli_helpers import one_line, run
 
-from capture.app.cli import _demo_puppet
+from capture.app.demo import demo_puppet
 from capture.app.orchestrator import Capture
 from capture.session import SessionReader
 from retarget.bvh import read_bvh
@@ -306,9 +306,8 @@ def test_a_failed_bvh_still_writes_the_timeline_and_vice_versa(tmp_path, capsys,
 
 
 # -- the demo's step ------------------------------------------------------------------------------------
-def test_demo_puppet_writes_puppet_bvh_beside_the_session(untouched, capsys):
-    _demo_puppet(SessionReader(untouched))
-    line = one_line(capsys.readouterr().out)
+def test_demo_puppet_writes_puppet_bvh_beside_the_session(untouched):
+    line = one_line(demo_puppet(SessionReader(untouched)))
     bvh = os.path.join(os.path.dirname(untouched), "puppet.bvh")
     assert line.startswith("puppet: the phone's attitude (held throughout: the simulated phone sends no touch) drove ")
     assert line.endswith(f"; BVH {bvh}") and "states LOCOMOTION" in line
@@ -317,10 +316,9 @@ def test_demo_puppet_writes_puppet_bvh_beside_the_session(untouched, capsys):
     assert clip.n_frames == n > 100 and skeleton.n_joints == 30
 
 
-def test_demo_puppet_failure_is_one_line(tmp_path, capsys):
+def test_demo_puppet_failure_is_one_line(tmp_path):
     path = tmp_path / "imu.mcap"
     Capture(["wrist=synth://imu?rate=100&realtime=false&duration=0.3"], output=str(path)).run(None)
-    _demo_puppet(SessionReader(str(path)))
-    line = one_line(capsys.readouterr().out)
+    line = one_line(demo_puppet(SessionReader(str(path))))
     assert line.startswith("puppet: not driven from the phone (ConfigError: ") and "no attitude stream" in line
     assert not (tmp_path / "puppet.bvh").exists()

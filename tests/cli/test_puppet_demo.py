@@ -9,15 +9,14 @@ import re
 
 import numpy as np
 
-from capture.app.cli import _demo_puppet
+from capture.app.demo import demo_puppet
 from capture.session import SessionReader
 from retarget.bvh import read_bvh
 
 
-def test_the_demo_puppet_walks_runs_and_hops_from_the_puppeteer_phone(tmp_path, record_phone_session, capsys):
+def test_the_demo_puppet_walks_runs_and_hops_from_the_puppeteer_phone(tmp_path, record_phone_session):
     session = record_phone_session(tmp_path / "demo.mcap", duration_s=5.0, motion="puppeteer")
-    _demo_puppet(SessionReader(str(session)))
-    out = [ln for ln in capsys.readouterr().out.splitlines() if ln.strip()]
+    out = [ln for ln in demo_puppet(SessionReader(str(session))).splitlines() if ln.strip()]
     assert len(out) == 1, out
     line = out[0]
     m = re.search(r"covered ([0-9.]+) m at up to ([0-9.]+) m/s; states (.*); BVH (.*)$", line)

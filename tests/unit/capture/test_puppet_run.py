@@ -22,19 +22,15 @@ import pytest
 from capture.bus import Overflow, SampleBus
 from capture.errors import ConfigError
 from capture.app.orchestrator import Capture
-from capture.app.puppet_run import (
+from capture.app.puppet_input import (
     PhoneTrack,
-    PuppetFollower,
-    PuppetRun,
-    VmcSender,
     attitude_quaternions,
-    parse_host_port,
-    probe_writable,
     read_trajectory,
     session_track,
     touch_changes,
     unknown_touch_phases,
 )
+from capture.app.puppet_run import PuppetFollower, PuppetRun, VmcSender, parse_host_port, probe_writable
 from capture.quat import quat_conj, quat_mul, quat_rotate
 from capture.sample import (
     DeviceIdentity,
@@ -214,7 +210,7 @@ def test_deviceorientation_angles_become_the_y_up_world():
 def test_deviceorientation_matches_scipys_intrinsic_zxy():
     from scipy.spatial.transform import Rotation
 
-    from capture.app.puppet_run import Z_UP_TO_Y_UP
+    from capture.app.puppet_input import Z_UP_TO_Y_UP
 
     ang = np.random.default_rng(1).uniform([0, -180, -90], [360, 180, 90], (300, 3))
     ref = quat_mul(Z_UP_TO_Y_UP, Rotation.from_euler("ZXY", ang, degrees=True).as_quat()[:, [3, 0, 1, 2]])
@@ -249,7 +245,7 @@ def test_android_angles_match_sensormanager_get_orientation():
     of the device-to-ENU matrix R; the angles must give back R (in the Y-up world)."""
     from scipy.spatial.transform import Rotation
 
-    from capture.app.puppet_run import Z_UP_TO_Y_UP
+    from capture.app.puppet_input import Z_UP_TO_Y_UP
 
     rot = Rotation.random(300, random_state=3)
     m = rot.as_matrix().reshape(-1, 9)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from capture.app.puppet_run import attitude_quaternions
+from capture.app.puppet_input import attitude_quaternions
 from capture.sample import DeviceIdentity, StreamInfo
 from retarget.puppet import PhoneInput, PuppetRetargeter
 from retarget.states import PuppetState as S

@@ -1,0 +1,195 @@
+"""What every ``perfcap`` command shares: exit codes, output, progress and live status lines, stopping
+on signals, settings from config and flags, argument checks and the capture report.
+
+Errors are one line on stderr and a non-zero exit (2 for bad input, 1 for a failed check or no cycle,
+70 for an internal error, with ``--debug`` showing the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import sys
+import threading
+from typing import TYPE_CHECKING, Any, NoReturn
+
+from capture.clock import MONOTONIC
+from capture.errors import ConfigError
+
+if TYPE_CHECKING:
+    from types import FrameType
+
+    from capture.app.config import Settings
+    from capture.app.orchestrator import Capture, CaptureReport
+
+EXIT_BAD_INPUT = 2
+EXIT_CHECK_FAILED = 1
+EXIT_INTERNAL = 70
+EXIT_NO_CYCLE = 1  # the input was read but holds no cycle (as grep's 1 for "no match")
+
+
+def out(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def err(text: str) -> None:
+    """One line on stderr."""
+    print(text, file=sys.stderr, flush=True)
+
+
+def seconds_since(t0_ns: int) -> float:
+    return (MONOTONIC.now_ns() - t0_ns) / 1e9
+
+
+class Progress:
+    """Progress on stderr for offline work that takes more than a second."""
+
+    def __init__(self, label: str, quiet: bool = False) -> None:
+        self.label = label
+        self.quiet = quiet
+        self.t0 = MONOTONIC.now_ns()
+        self.last = 0.0
+        self.shown = False
+
+    def __call__(self, done: int, total: int) -> None:
+        now = seconds_since(self.t0)
+        if self.quiet or now < 1.0 or now - self.last < 0.5:
+            return
+        self.last = now
+        self.shown = True
+        pct = 100.0 * done / total if total else 0.0
+        print(f"\r{self.label}: {pct:5.1f}%", end="", file=sys.stderr, flush=True)
+
+    def done(self) -> None:
+        if self.shown:
+            print(f"\r{self.label}: 100.0%", file=sys.stderr, flush=True)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by the first SIGINT or SIGTERM (which is said on stderr)."""
+    ev = threading.Event()
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        if ev.is_set():
+            return
+        ev.set()
+        print(f"\nperfcap: {signal.Signals(signum).name} received, stopping and flushing", file=sys.stderr)
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return ev
+
+
+def live_line(cap: Capture, elapsed: float) -> None:
+    """One status line on stderr: every stream's count, rate and losses, and devices still waiting."""
+    parts = []
+    for name, s in cap.stats.snapshot().items():
+        parts.append(f"{name} {s['samples']} @ {s['rate_hz']:.0f} Hz" + (f" ({s['drops']} lost)" if s["drops"] else ""))
+    for d in cap.devices:
+        if d.state.value in ("opening", "reconnecting", "closed") and not d.stats.chunks:
+            parts.append(f"{d.name}: waiting for the device")
+        elif d.state.value == "reconnecting":
+            parts.append(f"{d.name}: reconnecting")
+    if not parts:
+        parts.append("no devices yet (waiting for phones to connect)" if not cap.devices else "no samples yet")
+    print(f"[{elapsed:6.1f} s] " + "; ".join(parts), file=sys.stderr, flush=True)
+
+
+def settings(args: argparse.Namespace, serve: dict[str, Any] | None = None) -> Settings:
+    """The settings of a command: its flags over ``PERFCAP_*`` over ``--config``/``--profile`` over the
+    defaults (``serve``: the ``[serve]`` values its flags give)."""
+    from capture.app.config import load_config
+
+    overrides: dict[str, dict[str, Any]] = {"recorder": {}}
+    given = vars(args)
+    if given.get("max_loss") is not None:
+        overrides["recorder"]["max_loss_s"] = given["max_loss"]
+    if given.get("overwrite"):
+        overrides["recorder"]["overwrite"] = True
+    if given.get("orientation") is not None or given.get("filter"):
+        overrides["orientation"] = {"enabled": given.get("orientation"), "filter": given.get("filter")}
+    if given.get("calibration_dir"):
+        overrides["calibration"] = {"dir": given["calibration_dir"]}
+    if serve is not None:
+        overrides["serve"] = serve
+    return load_config(given.get("config"), given.get("profile"), overrides)
+
+
+def check_duration(d: float | None) -> None:
+    if d is not None and (not math.isfinite(d) or d <= 0):
+        raise ConfigError(f"--duration must be a positive number of seconds, not {d}")
+
+
+def check_writable(path: str | None, flag: str) -> None:
+    """``path`` can be created: its folder exists and it is not a folder itself."""
+    if path is None:
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ConfigError(f"{flag} {path}: the folder {folder} does not exist")
+    if os.path.isdir(path):
+        raise ConfigError(f"{flag} {path} is a directory")
+
+
+def print_capture(report: CaptureReport, as_json: bool) -> int:
+    """The capture report on stdout; the exit code it deserves (a failed recording or device: 1)."""
+    if as_json:
+        out(json.dumps({"duration_s": report.duration_s, "output": report.output, "streams": report.streams,
+                        "devices": report.devices, "subscribers": report.subscribers,
+                        "recorder_error": report.recorder_error, "events": report.events}, default=str))
+    else:
+        out(f"captured {report.duration_s:.2f} s" + (f" into {report.output}" if report.output else ""))
+        for name, s in report.streams.items():
+            out(f"  {name:24s} {s['samples']:8d} samples  {s['rate_hz']:8.2f} Hz  {s['drops']} lost")
+        for name, d in report.devices.items():
+            extra = []
+            if d["checksum_errors"] or d["framing_errors"]:
+                extra.append(f"{d['checksum_errors'] + d['framing_errors']} bad frames, "
+                             f"{d['skipped_bytes']} bytes skipped")
+            if d["reconnects"]:
+                extra.append(f"{d['reconnects']} reconnects")
+            if d["clock_resets"]:
+                extra.append(f"{d['clock_resets']} clock resets")
+            out(f"  device {name}: {d['state']}, {d['chunks']} chunks, {d['bytes']} bytes"
+                + (f"; {'; '.join(extra)}" if extra else ""))
+        for sub in report.subscribers:
+            if sub["dropped"]:
+                out(f"  subscriber {sub['name']} dropped {sub['dropped']} items")
+    if report.recorder_error:
+        err(f"perfcap: error: recording failed: {report.recorder_error}")
+        return EXIT_CHECK_FAILED
+    failed = [n for n, d in report.devices.items() if d["state"] == "failed"]
+    if failed:
+        err(f"perfcap: error: device(s) failed: {', '.join(failed)} (see the messages above)")
+        return EXIT_CHECK_FAILED
+    never = [n for n, d in report.devices.items() if not d.get("opens", 1)]
+    if never:
+        for n in never:
+            err(f"perfcap: error: device {n} was never opened during the take: {report.devices[n]['last_error']}")
+        return EXIT_CHECK_FAILED
+    return 0
+
+
+class Parser(argparse.ArgumentParser):
+    """Usage errors are the usage and one line, exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        print(f"perfcap: error: {message}", file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT)
+
+
+def orientation_args(p: argparse.ArgumentParser, help_on: str) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--orientation", action="store_true", default=None, help=help_on)
+    g.add_argument("--no-orientation", dest="orientation", action="store_false", help="no orientation fusion")
+    p.add_argument("--filter", choices=["fusion", "madgwick", "mahony", "ekf"],
+                   help="orientation filter (default fusion: x-io's Fusion, chosen by measurement)")
+
+
+if TYPE_CHECKING:
+    #: what ``build_parser`` hands each command module's ``add_parser``
+    Subcommands = argparse._SubParsersAction[argparse.ArgumentParser]

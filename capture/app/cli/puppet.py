@@ -1,0 +1,168 @@
+"""``perfcap puppet``: a character on an invisible stick from a phone (live, a recorded session or a
+scripted trajectory), stepped at a fixed rate: BVH, VMC over UDP and the state timeline."""
+
+from __future__ import annotations
+
+import sys
+from typing import TYPE_CHECKING
+
+from capture.app.cli.common import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, check_duration, check_writable, err, \
+    live_line, out, stop_on_signals
+from capture.errors import ConfigError
+
+if TYPE_CHECKING:
+    import argparse
+
+    from capture.app.cli.common import Subcommands
+    from capture.app.puppet_run import PuppetRun
+    from devices import DeviceSpec
+
+
+def add_parser(sub: Subcommands) -> None:
+    from devices import SPEC_FORM
+
+    pp = sub.add_parser("puppet", help="drive a character from a phone (live, a recorded session or a trajectory"
+                        " CSV): BVH, VMC, state timeline",
+                        description="A character hangs on an invisible stick from the phone: it walks, runs,"
+                        " crouches and jumps as the phone moves, and falls limp when the motion fits no animation."
+                        " Frames are stepped at a fixed rate. Exit 0 when driven, 1 when nothing drove it or every"
+                        " VMC send failed, 2 for bad input.")
+    src = pp.add_mutually_exclusive_group(required=True)
+    src.add_argument("--phone", metavar="DEVICE", help=f"live from a device, as for record ({SPEC_FORM}); its"
+                     " <name>/attitude stream, touches to grab")
+    src.add_argument("--input", metavar="TRAJECTORY.csv", help="a scripted trajectory: columns t,px,py,pz,qw,qx,"
+                     "qy,qz,touch (s, m, the phone's unit quaternion in the Y-up world, 0/1)")
+    src.add_argument("--session", metavar="SESSION", help="a recorded session: the phone's attitude and touches")
+    pp.add_argument("--device", metavar="NAME", help="with --session: the phone (default: the only device with an"
+                    " attitude stream)")
+    pp.add_argument("-o", "--output", metavar="OUT.bvh", help="write the performance as BVH (fps = --rate)")
+    pp.add_argument("--vmc", metavar="HOST:PORT", help="send one VMC (OSC) bundle per frame over UDP")
+    pp.add_argument("--timeline", metavar="TIMELINE.json", help='write the state changes as [{"t": s, "state":'
+                    ' name}, ...]')
+    pp.add_argument("--rate", type=float, default=60.0, metavar="HZ", help="frame rate (default 60)")
+    pp.add_argument("--duration", type=float, metavar="SECONDS", help="with --phone: stop after this long"
+                    " (default: Ctrl-C)")
+    pp.add_argument("--hold", action="store_true", help="the phone counts as held throughout (touches ignored)")
+    pp.add_argument("-q", "--quiet", action="store_true", help="no live status lines")
+    pp.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from capture.app import puppet_run
+    from capture.app.puppet_input import check_rate, read_trajectory, session_track
+    from capture.app.puppet_run import PuppetRun, VmcSender, parse_host_port
+
+    rate = check_rate(args.rate)
+    if args.duration is not None:
+        if not args.phone:
+            raise ConfigError("--duration is for --phone (a trajectory or a session is driven to its end)")
+        check_duration(args.duration)
+    if args.device is not None and not args.session:
+        raise ConfigError("--device chooses the phone of a --session")
+    check_writable(args.output, "-o")
+    check_writable(args.timeline, "--timeline")
+    puppet_run.probe_writable(args.output, "-o")          # before the performance, not after it
+    puppet_run.probe_writable(args.timeline, "--timeline")
+    if args.vmc:
+        parse_host_port(args.vmc)
+    spec = None
+    if args.phone:
+        from devices import parse_device_spec
+
+        spec = parse_device_spec(args.phone)
+    track = None
+    notes: list[str] = []
+    if args.input:
+        track = read_trajectory(args.input)
+    elif args.session:
+        from capture.session import SessionReader
+
+        track = session_track(SessionReader(args.session), args.device)
+    if track is not None:
+        notes = list(track.notes)
+        if args.hold and not track.held_throughout:
+            from dataclasses import replace
+
+            track = replace(track, held_throughout=True)
+            notes.append("--hold: the phone counts as held throughout (touches ignored)")
+    from retarget.puppet import PuppetRetargeter
+
+    retargeter = PuppetRetargeter()
+    vmc = VmcSender(args.vmc, retargeter.skeleton) if args.vmc else None
+    run = PuppetRun(retargeter, rate=rate, vmc=vmc, keep_frames=bool(args.output))
+    code = 0
+    try:
+        if track is None:
+            source, code, notes = _live(args, spec, run)
+        else:
+            source = track.source
+            for inp in track.resample(rate):
+                try:
+                    run.step(inp)
+                except ValueError as exc:   # an input the retargeter cannot follow: bad input, one line
+                    raise ConfigError(f"{source}: the puppet cannot follow the input at {inp.t:.6g} s"
+                                      f" ({' '.join(str(exc).split())})") from None
+    finally:
+        if vmc is not None:
+            vmc.close()
+    if not run.frames:
+        err(f"perfcap: error: no phone orientation from {source}: the puppet was not driven")
+        return EXIT_CHECK_FAILED
+    out(f"puppet: {run.frames} frames at {rate:g} Hz ({run.duration:.2f} s) from {source}")
+    for note in notes:
+        out(f"  note: {note}")
+    out("  states: " + ", ".join(f"{s} {t:.2f} s" for s, t in run.state_times().items())
+        + f" ({len(run.timeline()) - 1} change(s))")
+    written, unwritten = puppet_run.write_outputs(run, args.output, args.timeline)
+    for line in written:
+        out(line)
+    if vmc is not None:
+        out(f"  VMC: {vmc.sent} bundle(s) sent to {args.vmc} over UDP"
+            + (f", {vmc.errors} send error(s) (first: {vmc.first_error})" if vmc.errors else ""))
+        if vmc.errors and not vmc.sent:
+            err(f"perfcap: error: no VMC bundle could be sent to {args.vmc} ({vmc.first_error})")
+            code = code or EXIT_CHECK_FAILED
+    if unwritten:
+        err(f"perfcap: error: {'; '.join(unwritten)}")
+        code = EXIT_BAD_INPUT
+    return code
+
+
+def _live(args: argparse.Namespace, spec: DeviceSpec, run: PuppetRun) -> tuple[str, int, list[str]]:
+    """``--phone``: the device on a bus, followed until Ctrl-C, ``--duration`` or its end."""
+    from capture.app.orchestrator import Capture
+    from capture.app.puppet_run import PuppetFollower
+
+    cap = Capture([spec], meta={"command": " ".join(sys.argv)})
+    try:
+        dev = cap.devices[0]
+        follower = PuppetFollower.for_device(dev.name, dev.streams, run, hold=True if args.hold else None)
+        cap.add_processor(follower, name="puppet")   # follows the phone, publishes <device>/puppet
+    except BaseException:
+        cap.stop()
+        raise
+    notes = []
+    if follower.hold:
+        notes.append("--hold: the phone counts as held throughout" if args.hold else
+                     f"{dev.name} has no touch stream: the phone counts as held throughout")
+    else:
+        notes.append(f"the puppet is grabbed while the screen of {dev.name} is touched")
+    err(f"puppet: following {follower.attitude.name} of {dev.name} ({dev.kind} @ {dev.transport.url})"
+        + (f" for {args.duration:g} s" if args.duration else " until Ctrl-C"))
+    stop = stop_on_signals()
+    report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else live_line)
+    if not follower.hold and not follower.touches:
+        notes.append(f"no touch from {dev.name}: the puppet stayed released (--hold: held throughout)")
+    if follower.skipped:
+        notes.append(f"{follower.skipped} attitude sample(s) without values or out of order skipped")
+    if follower.unknown_touches:
+        notes.append(f"{follower.unknown_touches} touch row(s) with a phase other than 0-3 (start, move, end,"
+                     " cancel) ignored")
+    if follower.errors:
+        notes.append(f"{follower.errors} frame(s) failed (first: {follower.first_error})")
+    failed = [n for n, d in report.devices.items() if d["state"] == "failed" or not d.get("opens", 1)]
+    code = 0
+    for n in failed:
+        err(f"perfcap: error: device {n} failed: {report.devices[n]['last_error']}")
+        code = EXIT_CHECK_FAILED
+    return f"{dev.name} ({follower.samples} attitude samples)", code, notes

@@ -1,0 +1,210 @@
+"""``perfcap serve``: the capture service (phones over the built-in page, Sensor Logger, OSC, HyperIMU
+and SensorServer; the control API; mDNS), its endpoints and pairing link printed, recording on demand."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from capture import __version__
+from capture.app.cli.common import EXIT_BAD_INPUT, check_duration, live_line, out, print_capture, settings
+from capture.errors import ConfigError
+
+if TYPE_CHECKING:
+    import argparse
+
+    from capture.app.cli.common import Subcommands
+    from capture.app.serve.service import Service
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(sub: Subcommands) -> None:
+    sv = sub.add_parser("serve", help="the capture service: phones (built-in page, Sensor Logger, OSC, HyperIMU, "
+                        "SensorServer), control API, mDNS")
+    sv.add_argument("-d", "--device", action="append", metavar="DEVICE", help="also capture this device")
+    sv.add_argument("--record", metavar="SESSION.mcap", help="record from the start (else POST /api/record/start)")
+    sv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    sv.add_argument("--sessions-dir", help="where POST /api/record/start puts sessions without a path")
+    sv.add_argument("--host", help="address the phone endpoints listen on (default all)")
+    sv.add_argument("--port", type=int, help="phone page / WebSocket / Sensor Logger port (HTTPS)")
+    sv.add_argument("--public-host", help="address phones use to reach this machine (default: detected LAN address)")
+    sv.add_argument("--no-tls", action="store_true", help="plain HTTP (browsers then refuse motion sensors)")
+    sv.add_argument("--control-host", help="control API address (default loopback only)")
+    sv.add_argument("--control-port", type=int, help="control API port (-1: none)")
+    sv.add_argument("--state-dir", help="where the token and certificate are kept")
+    sv.add_argument("--rotate-token", action="store_true", help="make a new pairing token before starting")
+    sv.add_argument("--no-mdns", action="store_true", help="do not advertise or browse with mDNS")
+    sv.add_argument("--connect-sensorserver", action="store_true",
+                    help="connect to SensorServer phones found by mDNS without asking")
+    sv.add_argument("--osc-port", type=int, help="OSC UDP port (ZIG SIM, GyrOSC); off by default")
+    sv.add_argument("--osc-allow", help="addresses allowed to send OSC (needed with --osc-port)")
+    sv.add_argument("--osc-map", help="OSC address map: zigsim, gyrosc or a custom map")
+    sv.add_argument("--hyperimu-port", type=int, help="HyperIMU UDP port; off by default")
+    sv.add_argument("--hyperimu-tcp-port", type=int, help="HyperIMU TCP port; off by default")
+    sv.add_argument("--hyperimu-allow", help="addresses allowed to send HyperIMU CSV")
+    sv.add_argument("--hyperimu-sensors",
+                    help="HyperIMU's enabled sensors, in the app's order")
+    sv.add_argument("--phone-name", action="append", metavar="PROTOCOL/ID=NAME",
+                    help="a fixed device name for a phone (e.g. page/5f2c0a...=pocket)")
+    sv.add_argument("--max-phones", type=int, help="phone devices the service may create (default 32)")
+    sv.add_argument("--max-message-kb", type=int, help="largest message accepted (KiB)")
+    sv.add_argument("--max-rate", type=float, help="messages per second per client")
+    sv.add_argument("--max-connections-per-host", type=int)
+    sv.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long")
+    sv.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines (0: none)")
+    sv.add_argument("--config", metavar="FILE")
+    sv.add_argument("--profile", metavar="NAME")
+    sv.add_argument("-q", "--quiet", action="store_true")
+    sv.add_argument("--json", action="store_true", help="final report as JSON")
+    sv.set_defaults(func=run)
+
+
+def _print_qr(url: str) -> None:
+    """The URL as a QR code, when stdout is a terminal (a phone camera opens it)."""
+    if not sys.stdout.isatty():
+        return
+    try:
+        import qrcode
+
+        q = qrcode.QRCode(border=1)
+        q.add_data(url)
+        q.make(fit=True)
+        q.print_ascii(out=sys.stdout, tty=False, invert=True)
+    except Exception as exc:  # noqa: BLE001 - the URL is printed as text anyway
+        log.info("no QR code: %s", exc)
+
+
+#: ``perfcap serve`` flags that are ``[serve]`` settings (flag dest -> key)
+_SERVE_FLAGS = ("host", "port", "public_host", "control_host", "control_port", "state_dir", "sessions_dir",
+                "osc_port", "osc_allow", "osc_map", "hyperimu_port", "hyperimu_tcp_port", "hyperimu_allow",
+                "hyperimu_sensors", "max_phones", "max_message_kb", "max_rate", "max_connections_per_host")
+
+
+def _serve_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    o: dict[str, Any] = {k: getattr(args, k) for k in _SERVE_FLAGS}
+    if args.no_tls:
+        o["tls"] = False
+    if args.no_mdns:
+        o["mdns"] = False
+    if args.connect_sensorserver:
+        o["connect_sensorserver"] = True
+    if args.phone_name:
+        o["phone_names"] = ",".join(args.phone_name)
+    return o
+
+
+def _serve_config(ss: Any) -> Any:
+    """``ServeConfig`` from the ``[serve]`` settings.
+
+    Raises:
+        ConfigError: a phone name entry is malformed.
+    """
+    from capture.app.serve.gateway import Limits
+    from capture.app.serve.service import ServeConfig
+
+    names = {}
+    for item in (i.strip() for i in ss.phone_names.split(",")):
+        if not item:
+            continue
+        key, sep, name = item.partition("=")
+        if not sep or "/" not in key or not name:
+            raise ConfigError(f"phone name {item!r}: expected PROTOCOL/ID=NAME, e.g. page/5f2c0a=pocket")
+        names[key.strip()] = name.strip()
+    limits = Limits(max_message_bytes=ss.max_message_kb * 1024, max_push_bytes=ss.max_push_mb << 20,
+                    rate_hz=ss.max_rate, burst=max(ss.max_rate * 2, 1.0), max_connections=ss.max_phones * 2,
+                    max_connections_per_host=ss.max_connections_per_host)
+    return ServeConfig(host=ss.host, port=ss.port, tls=ss.tls, public_host=ss.public_host,
+                       control_host=ss.control_host, control_port=ss.control_port, state_dir=ss.state_dir,
+                       mdns=ss.mdns, mdns_interfaces=ss.mdns_interfaces,
+                       connect_sensorserver=ss.connect_sensorserver, sensorserver_types=ss.sensorserver_types,
+                       osc_port=ss.osc_port, osc_allow=ss.osc_allow, osc_map=ss.osc_map,
+                       hyperimu_port=ss.hyperimu_port, hyperimu_tcp_port=ss.hyperimu_tcp_port,
+                       hyperimu_allow=ss.hyperimu_allow, hyperimu_sensors=ss.hyperimu_sensors,
+                       max_phones=ss.max_phones, limits=limits, names=names, sessions_dir=ss.sessions_dir)
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from capture.app.serve.service import Service
+    from devices import parse_device_spec
+
+    check_duration(args.duration)
+    s = settings(args, serve=_serve_overrides(args))
+    cfg = _serve_config(s.serve)
+    specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
+    if args.rotate_token:
+        from capture.app.serve.security import TokenStore
+        from capture.app.serve.service import default_state_dir
+
+        TokenStore(Path(cfg.state_dir) if cfg.state_dir else default_state_dir()).rotate()
+    service = Service(cfg, specs, reconnect=s.reconnect_policy(),
+                      capture_options={"max_loss_s": s.recorder.max_loss_s, "fsync": s.recorder.fsync,
+                                       "recorder_max_bytes": s.bus.recorder_max_mb << 20,
+                                       "live_queue": s.bus.live_queue})
+
+    if args.record:  # before anything starts, so the take has the devices' first bytes
+        try:
+            service.start_recording(args.record, overwrite=s.recorder.overwrite, anywhere=True)
+        except BaseException:
+            service.capture.stop()
+            raise
+
+    def ready(svc: Service) -> None:
+        ep = svc.endpoints
+        out(f"perfcap {__version__} serve")
+        out(f"  phone page      {ep.page_url}   (open on the phone; same Wi-Fi)")
+        out(f"  pairing link    {ep.pair_url}")
+        out(f"  pairing token   {svc.tokens.token}   (shown once; rotate with --rotate-token or POST /api/token/rotate)")
+        if ep.fingerprint:
+            out(f"  TLS certificate SHA-256 {ep.fingerprint}")
+            out("                  (self-signed: the phone warns once; check that it shows this fingerprint)")
+        out(f"  Sensor Logger   push URL {ep.sensorlogger_url}")
+        if ep.osc_port:
+            out(f"  OSC (ZIG SIM/GyrOSC)  udp port {ep.osc_port}, map {cfg.osc_map}, from {cfg.osc_allow}")
+        if ep.hyperimu_port or ep.hyperimu_tcp_port:
+            out(f"  HyperIMU        udp {ep.hyperimu_port or 'off'}, tcp {ep.hyperimu_tcp_port or 'off'},"
+                f" sensors {cfg.hyperimu_sensors}, from {cfg.hyperimu_allow}")
+        if ep.control_url:
+            out(f"  control API     {ep.control_url}  (Authorization: Bearer <token>)")
+        out(f"  mDNS            {ep.advertised or 'off: ' + str(ep.mdns_error or 'disabled')}")
+        _print_qr(ep.pair_url)
+        if svc.capture.output:
+            out(f"  recording to    {svc.capture.output}")
+        out("Ctrl-C stops and flushes the recording.")
+        sys.stdout.flush()
+
+    async def main_async() -> Any:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, lambda sig=sig: (
+                print(f"\nperfcap: {signal.Signals(sig).name} received, stopping and flushing", file=sys.stderr),
+                service.request_stop()))
+        if args.duration:
+            loop.call_later(args.duration, service.request_stop)
+
+        async def ticker() -> None:
+            t0 = loop.time()
+            while True:
+                await asyncio.sleep(args.status_every)
+                live_line(service.capture, loop.time() - t0)
+
+        task = loop.create_task(ticker()) if not args.quiet and args.status_every > 0 else None
+        try:
+            return await service.run(on_ready=ready)
+        finally:
+            if task is not None:
+                task.cancel()
+
+    report = asyncio.run(main_async())
+    rej = service.gateway.rejected.as_dict()
+    if rej:
+        out("refused input: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))
+    if report is None:
+        return EXIT_BAD_INPUT
+    code = print_capture(report, args.json)
+    return 0 if code == 1 and not service.capture.devices else code

@@ -1,0 +1,239 @@
+"""What ``perfcap cycle`` extracts from: a perfcap session's stream or a CSV file (perfcap exports,
+Sensor Logger, phyphox and hand-made files: BOM, ``,`` ``;`` or tab separators, trailing delimiters,
+seconds or epoch-nanosecond time columns), read into times and values; the extraction timed and its
+report drawn."""
+
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from capture.app.export import TIMING_COLUMNS as EXPORT_TIMING_COLUMNS
+from capture.clock import MONOTONIC
+from capture.errors import ConfigError
+
+if TYPE_CHECKING:
+    from capture.sample import SampleBatch
+    from capture.session import SessionReader
+    from cycles import Cycle
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+CSV_TIME_COLUMNS = ("seconds_elapsed", "t", "time_s", "t_s", "time[s]", "time (s)", "time", "timestamp")
+
+
+@dataclass
+class CycleInput:
+    """What ``perfcap cycle`` extracts from: times (s), values (n, C) and how to read the columns."""
+
+    source: str                          # the file, and the stream for a session
+    t: np.ndarray                        # (n,) seconds (a session's: from the stream's first sample)
+    values: np.ndarray                   # (n, C)
+    channels: list[str]
+    stream: str | None = None
+    quaternions: tuple[tuple[int, int, int, int], ...] = ()
+    angles: tuple[int, ...] = ()
+    angle_unit: str = "rad"
+    origin_ns: int | None = None         # a session's: the bus time of t = 0
+    dropped: int = 0                     # rows left out (an empty or non-finite value)
+
+
+def split_columns(spec: str | None) -> list[str] | None:
+    if spec is None:
+        return None
+    names = [c.strip() for c in spec.split(",") if c.strip()]
+    if not names:
+        raise ConfigError("--columns needs at least one column name (A,B,...)")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--columns names a column twice: {spec}")
+    return names
+
+
+def _pick(available: list[str], wanted: list[str], what: str) -> list[int]:
+    idx = []
+    for name in wanted:
+        if name not in available:
+            raise ConfigError(f"no column {name!r} in {what}; its columns are: {', '.join(available)}")
+        idx.append(available.index(name))
+    return idx
+
+
+def session_cycle_input(reader: SessionReader, stream: str | None, columns: list[str] | None) -> CycleInput:
+
+    path = reader.path
+    if stream is not None and stream in reader.streams:
+        b = reader.samples(stream)          # only the stream asked for (sessions can be large)
+        if len(b.t_bus_ns):
+            return _session_stream_input(reader, stream, b, columns)
+    batches = {n: reader.samples(n) for n in reader.streams}
+    filled = [n for n in reader.streams if len(batches[n].t_bus_ns) > 0]
+    listing = ", ".join(f"{n} ({reader.streams[n].kind})" for n in filled) or "none"
+    if stream is None:
+        if not filled:
+            raise ConfigError(f"{path}: the session holds no samples")
+        if len(filled) == 1:
+            stream = filled[0]
+        else:
+            for kinds in (("imu",), ("quat", "orientation"), ("euler",)):
+                of_kind = [n for n in filled if reader.streams[n].kind in kinds]
+                if len(of_kind) == 1:
+                    stream = of_kind[0]
+                    break
+                if of_kind:
+                    break
+        if stream is None:
+            raise ConfigError(f"{path} has {len(filled)} streams; choose one with --stream: {listing}")
+    if stream not in reader.streams:
+        raise ConfigError(f"{path} has no stream {stream!r}; its streams: {listing}")
+    b = batches[stream]
+    if len(b.t_bus_ns) == 0:
+        raise ConfigError(f"stream {stream} of {path} holds no samples; streams with samples: {listing}")
+    return _session_stream_input(reader, stream, b, columns)
+
+
+def _session_stream_input(reader: SessionReader, stream: str, b: SampleBatch, columns: list[str] | None) -> CycleInput:
+    path = reader.path
+    info = reader.streams[stream]
+    chans = list(info.channels)
+    if columns is not None:
+        idx = _pick(chans, columns, f"stream {stream}")
+    elif info.kind == "imu":  # the temperature is no part of the motion (and drifts on its own)
+        idx = [i for i, u in enumerate(info.units) if u != "degC"] or list(range(len(chans)))
+    else:
+        idx = list(range(len(chans)))
+    values = np.asarray(b.values, np.float64)[:, idx]
+    names = [chans[i] for i in idx]
+    quats: tuple[tuple[int, int, int, int], ...] = ()
+    angles: tuple[int, ...] = ()
+    unit = "rad"
+    if info.kind in ("quat", "orientation") and all(c in names for c in ("w", "x", "y", "z")):
+        w, x, y, z = (names.index(c) for c in ("w", "x", "y", "z"))
+        quats = ((w, x, y, z),)
+    elif info.kind == "euler":
+        units = {info.units[i] for i in idx}
+        angles = tuple(range(len(idx)))
+        unit = "deg" if units <= {"deg"} else "rad"
+    origin = int(b.t_bus_ns[0])
+    t = (np.asarray(b.t_bus_ns, np.int64) - origin) / 1e9
+    keep = np.all(np.isfinite(values), axis=1)
+    return CycleInput(f"{path} {stream}", t[keep], values[keep], names, stream=stream, quaternions=quats, angles=angles,
+                       angle_unit=unit, origin_ns=origin, dropped=int((~keep).sum()))
+
+
+def csv_cycle_input(path: str, columns: list[str] | None) -> CycleInput:
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:   # (a BOM is not part of the first name)
+            head = f.read(8192)
+            f.seek(0)
+            try:
+                dialect: Any = csv.Sniffer().sniff(head, delimiters=",;\t")
+            except csv.Error:
+                dialect = csv.excel
+            rows = [r for r in csv.reader(f, dialect) if r and any(c.strip() for c in r)]
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path} is neither a perfcap session nor a text CSV file") from None
+    except (OSError, csv.Error) as exc:
+        raise ConfigError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if not rows:
+        raise ConfigError(f"{path} is empty: expected a CSV with a time column (s) and channel columns")
+
+    def number(x: str) -> float | None:
+        try:
+            return float(x)
+        except ValueError:
+            return None
+
+    header = any(number(c) is None for c in rows[0] if c.strip())
+    names = [c.strip() for c in rows[0]] if header else [f"c{i}" for i in range(len(rows[0]))]
+    body = rows[1:] if header else rows
+    # a trailing delimiter on every line makes an empty, unnamed column: drop it
+    while len(names) > 1 and not names[-1] and all(len(r) == len(names) and not r[-1].strip() for r in body):
+        names.pop()
+        body = [r[:-1] for r in body]
+    if len(names) < 2:
+        raise ConfigError(f"{path}: expected a time column and at least one channel column, found one column")
+    lower = [n.lower() for n in names]
+    t_col, t_scale = 0, 1.0
+    for cand in CSV_TIME_COLUMNS:
+        if cand in lower:
+            t_col = lower.index(cand)
+            break
+    else:
+        if "t_bus_ns" in lower:  # a perfcap export
+            t_col, t_scale = lower.index("t_bus_ns"), 1e-9
+    if columns is not None:
+        idx = _pick(names, columns, path)
+        if t_col in idx:
+            raise ConfigError(f"--columns: {names[t_col]!r} is the time column")
+    else:
+        # (a perfcap export's timing columns, other clocks (Sensor Logger's epoch ns 'time' beside its
+        # 'seconds_elapsed') and an IMU's temperature are no part of the motion)
+        idx = [i for i, n in enumerate(lower) if i != t_col and n not in EXPORT_TIMING_COLUMNS
+               and n not in CSV_TIME_COLUMNS and not n.endswith("[degc]")]
+        if not idx:
+            raise ConfigError(f"{path}: no channel columns besides the time column {names[t_col]!r}")
+    data = np.full((len(body), len(idx) + 1), np.nan)
+    for r, row in enumerate(body):
+        if len(row) != len(names):
+            raise ConfigError(f"{path} line {r + 1 + header}: {len(row)} fields where the header has {len(names)}")
+        for j, col in enumerate([t_col, *idx]):
+            cell = row[col].strip()
+            if cell:
+                v = number(cell)
+                if v is None:
+                    raise ConfigError(f"{path} line {r + 1 + header}, column {names[col]!r}: {cell!r} is not a number")
+                data[r, j] = v
+    keep = np.all(np.isfinite(data), axis=1)
+    data = data[keep]
+    if not len(data):
+        raise ConfigError(f"{path}: no rows with a time and every channel")
+    if t_scale == 1.0 and len(data) > 2 and float(np.median(np.diff(data[:, 0]))) >= 1e5:
+        t_scale = 1e-9   # steps of more than a day: the time column counts nanoseconds (an epoch clock)
+    return CycleInput(path, data[:, 0] * t_scale, data[:, 1:], [names[i] for i in idx],
+                       dropped=int((~keep).sum()))
+
+
+def read_cycle_input(path: str, stream: str | None, columns: list[str] | None) -> CycleInput:
+    if not os.path.exists(path):
+        raise ConfigError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise ConfigError(f"{path} is a directory, not a session or CSV file")
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if magic == MCAP_MAGIC:
+        from capture.session import SessionReader
+
+        return session_cycle_input(SessionReader(path), stream, columns)
+    if stream is not None:
+        raise ConfigError(f"--stream is for perfcap sessions; {path} is not one (for a CSV, use --columns)")
+    return csv_cycle_input(path, columns)
+
+
+def extract_cycle(inp: CycleInput, seed: int = 0) -> Cycle:
+    """``cycles.extract`` on a read input, timed (``elapsed_ms`` is the extraction alone)."""
+    from cycles import extract
+
+    t0 = MONOTONIC.now_ns()
+    cyc = extract(inp.t, inp.values, channels=inp.channels, quaternions=inp.quaternions, angles=inp.angles,
+                  angle_unit=inp.angle_unit, seed=seed)
+    return replace(cyc, elapsed_ms=(MONOTONIC.now_ns() - t0) / 1e6)
+
+
+def write_cycle_report(cyc: Cycle, path: str, title: str) -> None:
+    """The report image, with its failures as one-line ``ConfigError`` s."""
+    try:
+        from cycles.report import write_report
+    except ImportError as exc:
+        raise ConfigError(f"the report needs matplotlib ({exc}); pip install 'matplotlib>=3.8'") from None
+    try:
+        write_report(cyc, path, title=title)
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"cannot write the report {path}: {exc}") from None
