@@ -85,7 +85,8 @@ def role_service(cfg: dict[str, Any]) -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from capture.bus import Overflow, Subscriber
     from capture.sample import Sample, SampleBatch
-    from capture.app.serve.service import ServeConfig, Service, ServiceThread
+    from capture.app.serve.config import ServeConfig
+    from capture.app.serve.service import Service, ServiceThread
 
     osc_port = 0
     if cfg.get("osc"):

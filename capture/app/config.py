@@ -30,7 +30,7 @@ A config file looks like::
     [calibration]
     dir = ""                   # default: $XDG_DATA_HOME/perfcap/calibration
 
-    [serve]                    # perfcap serve; every key is also a flag (--osc-port ...)
+    [serve]                    # perfcap serve; every key is also a flag (--osc-port ...): capture.app.serve.config
     port = 8443
     osc_port = 9000            # 0 = off; OSC and HyperIMU need an allow-list
     osc_allow = "192.168.1.0/24"
@@ -48,78 +48,52 @@ from __future__ import annotations
 
 import os
 import tomllib
-from dataclasses import dataclass, field, fields
-from pathlib import Path
-from typing import Any
 from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from capture.app.schema import parse_value, setting, setting_fields
+from capture.app.serve.config import ServeConfig
 from capture.errors import ConfigError
+
+if TYPE_CHECKING:
+    from devices import DeviceSpec, ReconnectPolicy
 
 PROFILE_DIR = Path(__file__).resolve().parents[2] / "config"
 
 
 @dataclass
 class BusSettings:
-    live_queue: int = 8192
-    recorder_max_mb: int = 1024
+    live_queue: int = setting(8192, "items a live subscriber may have waiting", min=1, max=10_000_000)
+    recorder_max_mb: int = setting(1024, "memory bound of the recorder's queue (MiB)", min=1, max=1_000_000)
 
 
 @dataclass
 class RecorderSettings:
-    max_loss_s: float = 1.0
-    fsync: bool = True
-    overwrite: bool = False
+    max_loss_s: float = setting(1.0, "at most this much data lost if the recorder is killed", min=0.01, max=3600)
+    fsync: bool = setting(True, "also survive power loss, not only a killed process")
+    overwrite: bool = setting(False, "replace an existing session file")
 
 
 @dataclass
 class ReconnectSettings:
-    enabled: bool = True
-    initial_s: float = 0.2
-    max_s: float = 5.0
-    give_up_after_s: float = 0.0
+    enabled: bool = setting(True, "retry an unplugged device")
+    initial_s: float = setting(0.2, "first retry after an unplug; doubles up to max_s", min=0.001, max=3600)
+    max_s: float = setting(5.0, "longest wait between retries", min=0.001, max=3600)
+    give_up_after_s: float = setting(0.0, "0 = keep trying until the take ends", min=0, max=10**9)
 
 
 @dataclass
 class OrientationSettings:
-    enabled: bool = False    # run orientation fusion on every IMU stream while recording or replaying
-    filter: str = "fusion"   # fusion | madgwick | mahony | ekf
-    auto_bias: bool = True   # learn the gyro bias from stillness while running
+    enabled: bool = setting(False, "run orientation fusion on every IMU stream while recording or replaying")
+    filter: str = setting("fusion", "the orientation filter", choices=("fusion", "madgwick", "mahony", "ekf"))
+    auto_bias: bool = setting(True, "learn the gyro bias from stillness while running")
 
 
 @dataclass
 class CalibrationSettings:
-    dir: str = ""            # where calibrations are kept; "" = $XDG_DATA_HOME/perfcap/calibration
-
-
-@dataclass
-class ServeSettings:
-    """``perfcap serve`` (see ``capture.app.serve.service.ServeConfig``)."""
-
-    host: str = "0.0.0.0"          # address the phone endpoints listen on
-    port: int = 8443               # phone page, WebSocket, Sensor Logger push (HTTPS)
-    public_host: str = ""          # the address phones use ("" = the detected LAN address)
-    tls: bool = True
-    control_host: str = "127.0.0.1"
-    control_port: int = 8780       # -1 = no control API
-    state_dir: str = ""            # token and certificate ("" = $XDG_DATA_HOME/perfcap/serve)
-    sessions_dir: str = "."        # where POST /api/record/start puts sessions without a path
-    mdns: bool = True
-    mdns_interfaces: str = "all"
-    connect_sensorserver: bool = False
-    sensorserver_types: str = "accelerometer,gyroscope"
-    osc_port: int = 0              # 0 = off
-    osc_allow: str = ""
-    osc_map: str = "zigsim"
-    hyperimu_port: int = 0         # UDP; 0 = off
-    hyperimu_tcp_port: int = 0
-    hyperimu_allow: str = ""
-    hyperimu_sensors: str = "accelerometer,gyroscope,magnetometer"
-    phone_names: str = ""          # "page/5f2c...=pocket,sensorlogger/abc=belt"
-    max_phones: int = 32
-    max_message_kb: int = 64
-    max_push_mb: int = 4
-    max_rate: float = 200.0        # messages per second per client
-    max_connections_per_host: int = 4
+    dir: str = setting("", "where calibrations are kept (default $XDG_DATA_HOME/perfcap/calibration)")
 
 
 @dataclass
@@ -129,72 +103,38 @@ class Settings:
     reconnect: ReconnectSettings = field(default_factory=ReconnectSettings)
     orientation: OrientationSettings = field(default_factory=OrientationSettings)
     calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
-    serve: ServeSettings = field(default_factory=ServeSettings)
-    devices: list[Any] = field(default_factory=list)  # DeviceSpec
+    serve: ServeConfig = field(default_factory=ServeConfig)
+    devices: list[DeviceSpec] = field(default_factory=list)
     sources: list[str] = field(default_factory=list)
 
-    def reconnect_policy(self) -> Any:
+    def reconnect_policy(self) -> ReconnectPolicy:
         from devices import ReconnectPolicy
+
         r = self.reconnect
         return ReconnectPolicy(r.enabled, r.initial_s, r.max_s, 2.0, r.give_up_after_s or None)
 
 
-_SECTIONS = {"bus": BusSettings, "recorder": RecorderSettings, "reconnect": ReconnectSettings,
-             "orientation": OrientationSettings, "calibration": CalibrationSettings, "serve": ServeSettings}
-_CHOICES: dict[str, tuple[str, ...]] = {"orientation.filter": ("fusion", "madgwick", "mahony", "ekf")}
-_LIMITS: dict[str, tuple[float, float]] = {
-    "bus.live_queue": (1, 10_000_000), "bus.recorder_max_mb": (1, 1_000_000),
-    "recorder.max_loss_s": (0.01, 3600), "reconnect.initial_s": (0.001, 3600), "reconnect.max_s": (0.001, 3600),
-    "reconnect.give_up_after_s": (0, 10**9),
-    "serve.port": (0, 65535), "serve.control_port": (-1, 65535), "serve.osc_port": (0, 65535),
-    "serve.hyperimu_port": (0, 65535), "serve.hyperimu_tcp_port": (0, 65535), "serve.max_phones": (1, 10_000),
-    "serve.max_message_kb": (1, 1 << 20), "serve.max_push_mb": (1, 1024), "serve.max_rate": (0.1, 1e6),
-    "serve.max_connections_per_host": (1, 10_000),
-}
-_TYPE_NAMES = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+#: the sections of a config file, each a settings dataclass (``capture.app.schema``)
+SECTIONS: dict[str, type] = {"bus": BusSettings, "recorder": RecorderSettings, "reconnect": ReconnectSettings,
+                             "orientation": OrientationSettings, "calibration": CalibrationSettings,
+                             "serve": ServeConfig}
 
 
-def _coerce(where: str, key: str, value: Any, typ: type, from_text: bool) -> Any:
-    if from_text:
-        text = str(value).strip()
-        try:
-            if typ is bool:
-                if text.lower() in ("1", "true", "yes", "on"):
-                    return True
-                if text.lower() in ("0", "false", "no", "off"):
-                    return False
-                raise ValueError
-            value = typ(text)
-        except ValueError:
-            raise ConfigError(f"{where}: {key} = {text!r} must be {_TYPE_NAMES[typ]}", source=where) from None
-    ok = (isinstance(value, bool) if typ is bool else
-          isinstance(value, int) and not isinstance(value, bool) if typ is int else
-          isinstance(value, (int, float)) and not isinstance(value, bool) if typ is float else isinstance(value, typ))
-    if not ok:
-        raise ConfigError(f"{where}: {key} = {value!r} must be {_TYPE_NAMES[typ]}", source=where)
-    if typ is float:
-        value = float(value)
-    choices = _CHOICES.get(key)
-    if choices and value not in choices:
-        raise ConfigError(f"{where}: {key} = {value!r} must be one of {', '.join(choices)}", source=where)
-    lim = _LIMITS.get(key)
-    if lim and not (lim[0] <= value <= lim[1]):
-        raise ConfigError(f"{where}: {key} = {value!r} must be within [{lim[0]}, {lim[1]}]", source=where)
-    return value
+def _keys(section: str) -> list[str]:
+    return [f.name for f, _ in setting_fields(SECTIONS[section])]
 
 
 def _apply_section(where: str, name: str, target: Any, data: Any, from_text: bool = False) -> None:
     if not isinstance(data, Mapping):
         raise ConfigError(f"{where}: [{name}] must be a table of keys", source=where)
-    types = {f.name: f.type for f in fields(target)}
+    options = {f.name: opt for f, opt in setting_fields(type(target))}
     for k, v in data.items():
-        if k not in types:
-            raise ConfigError(f"{where}: unknown key {name}.{k}; [{name}] takes: {', '.join(types)}", source=where)
-        typ = {"int": int, "float": float, "bool": bool, "str": str}[str(types[k])]
-        setattr(target, k, _coerce(where, f"{name}.{k}", v, typ, from_text))
+        if k not in options:
+            raise ConfigError(f"{where}: unknown key {name}.{k}; [{name}] takes: {', '.join(options)}", source=where)
+        setattr(target, k, parse_value(options[k], f"{name}.{k}", v, where, from_text=from_text))
 
 
-def _devices(where: str, data: Any) -> list[Any]:
+def _devices(where: str, data: Any) -> list[DeviceSpec]:
     from devices import DeviceSpec, parse_device_spec
 
     if not isinstance(data, list):
@@ -252,12 +192,12 @@ def _load_file(path: Path, settings: Settings) -> None:
     except UnicodeDecodeError:
         raise ConfigError(f"{where}: not valid TOML: not UTF-8 text", source=where) from None
     for k, v in data.items():
-        if k in _SECTIONS:
+        if k in SECTIONS:
             _apply_section(where, k, getattr(settings, k), v)
         elif k == "devices":
             settings.devices = _devices(where, v)
         else:
-            raise ConfigError(f"{where}: unknown section or key {k!r}; expected: {', '.join([*_SECTIONS, 'devices'])}",
+            raise ConfigError(f"{where}: unknown section or key {k!r}; expected: {', '.join([*SECTIONS, 'devices'])}",
                               source=where)
     settings.sources.append(where)
 
@@ -285,13 +225,13 @@ def load_config(path: str | os.PathLike[str] | None = None, profile: str | None 
             continue
         rest = k[len("PERFCAP_"):].lower()
         sec, _, key = rest.partition("_")
-        if sec in _SECTIONS:
-            if key not in {f.name for f in fields(_SECTIONS[sec])}:
-                raise ConfigError(f"environment: {k} is not a setting; [{sec}] takes: "
-                                  f"{', '.join(f.name for f in fields(_SECTIONS[sec]))}", source=k)
+        if sec in SECTIONS:
+            if key not in _keys(sec):
+                raise ConfigError(f"environment: {k} is not a setting; [{sec}] takes: {', '.join(_keys(sec))}",
+                                  source=k)
             _apply_section(f"environment {k}", sec, getattr(s, sec), {key: v}, from_text=True)
     for sec, vals in (overrides or {}).items():
-        if sec not in _SECTIONS:
+        if sec not in SECTIONS:
             raise ValueError(f"unknown settings section {sec!r}")
         _apply_section("command line", sec, getattr(s, sec), {k: v for k, v in vals.items() if v is not None})
     return s

@@ -123,7 +123,8 @@ def start_serial_sim(duration: float, say: Say) -> SerialSim | None:
 
 def start_service(devices: list[str], path: str, overwrite: bool) -> tuple[Service, ServiceThread]:
     """The demo's devices in a ``perfcap serve`` service on loopback, recording from the start."""
-    from capture.app.serve.service import ServeConfig, Service, ServiceThread
+    from capture.app.serve.config import ServeConfig
+    from capture.app.serve.service import Service, ServiceThread
 
     cfg = ServeConfig(host="127.0.0.1", port=0, control_port=-1, mdns=False,
                       state_dir=tempfile.mkdtemp(prefix="perfcap-demo-serve-"), token=secrets.token_urlsafe(18),

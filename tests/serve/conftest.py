@@ -27,8 +27,8 @@ from typing import Any
 
 import pytest
 
-from capture.app.serve.gateway import Limits
-from capture.app.serve.service import ServeConfig, Service, ServiceThread
+from capture.app.serve.config import Limits, ServeConfig
+from capture.app.serve.service import Service, ServiceThread
 from sim_devices.phone_client import PhoneThread, SimPagePhone
 from sim_devices.phone_sim import page_hello
 

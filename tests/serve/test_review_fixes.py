@@ -19,7 +19,8 @@ from serve_helpers import TOKEN, wait_until
 from capture.errors import ConfigError
 from capture.app.serve.gateway import CLOSE_MALFORMED
 from capture.app.serve.security import AllowList, TokenStore
-from capture.app.serve.service import ServeConfig, Service
+from capture.app.serve.config import ServeConfig
+from capture.app.serve.service import Service
 from capture.session import SessionReader
 from sim_devices.phone_apps_sim import hyperimu_rows
 

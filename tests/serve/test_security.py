@@ -35,10 +35,10 @@ from capture.app.serve.gateway import (
     CLOSE_TOKEN,
     CLOSE_TOO_LARGE,
     CLOSE_TOO_MANY,
-    Limits,
 )
+from capture.app.serve.config import Limits, ServeConfig
 from capture.app.serve.security import TOKEN_FILE, AllowList, TokenStore
-from capture.app.serve.service import ServeConfig, Service
+from capture.app.serve.service import Service
 from capture.app.serve.tls import CERT_FILE, KEY_FILE, ensure_certificate
 from capture.session import SessionReader
 from sim_devices.phone_client import send_udp

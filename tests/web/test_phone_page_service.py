@@ -14,7 +14,8 @@ import pytest
 
 from capture.bus import Subscriber
 from capture.sample import Sample, SampleBatch
-from capture.app.serve.service import ServeConfig, Service, ServiceThread
+from capture.app.serve.config import ServeConfig
+from capture.app.serve.service import Service, ServiceThread
 from capture.session import SessionReader
 
 TOKEN = "browser-test-token-0123456789"

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 from capture import __version__
 from capture.app.cli.common import EXIT_BAD_INPUT, check_duration, live_line, out, print_capture, settings
-from capture.errors import ConfigError
+from capture.app.schema import add_flags, flag_values
+from capture.app.serve.config import ServeConfig
 
 if TYPE_CHECKING:
     import argparse
@@ -28,32 +29,8 @@ def add_parser(sub: Subcommands) -> None:
     sv.add_argument("-d", "--device", action="append", metavar="DEVICE", help="also capture this device")
     sv.add_argument("--record", metavar="SESSION.mcap", help="record from the start (else POST /api/record/start)")
     sv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
-    sv.add_argument("--sessions-dir", help="where POST /api/record/start puts sessions without a path")
-    sv.add_argument("--host", help="address the phone endpoints listen on (default all)")
-    sv.add_argument("--port", type=int, help="phone page / WebSocket / Sensor Logger port (HTTPS)")
-    sv.add_argument("--public-host", help="address phones use to reach this machine (default: detected LAN address)")
-    sv.add_argument("--no-tls", action="store_true", help="plain HTTP (browsers then refuse motion sensors)")
-    sv.add_argument("--control-host", help="control API address (default loopback only)")
-    sv.add_argument("--control-port", type=int, help="control API port (-1: none)")
-    sv.add_argument("--state-dir", help="where the token and certificate are kept")
     sv.add_argument("--rotate-token", action="store_true", help="make a new pairing token before starting")
-    sv.add_argument("--no-mdns", action="store_true", help="do not advertise or browse with mDNS")
-    sv.add_argument("--connect-sensorserver", action="store_true",
-                    help="connect to SensorServer phones found by mDNS without asking")
-    sv.add_argument("--osc-port", type=int, help="OSC UDP port (ZIG SIM, GyrOSC); off by default")
-    sv.add_argument("--osc-allow", help="addresses allowed to send OSC (needed with --osc-port)")
-    sv.add_argument("--osc-map", help="OSC address map: zigsim, gyrosc or a custom map")
-    sv.add_argument("--hyperimu-port", type=int, help="HyperIMU UDP port; off by default")
-    sv.add_argument("--hyperimu-tcp-port", type=int, help="HyperIMU TCP port; off by default")
-    sv.add_argument("--hyperimu-allow", help="addresses allowed to send HyperIMU CSV")
-    sv.add_argument("--hyperimu-sensors",
-                    help="HyperIMU's enabled sensors, in the app's order")
-    sv.add_argument("--phone-name", action="append", metavar="PROTOCOL/ID=NAME",
-                    help="a fixed device name for a phone (e.g. page/5f2c0a...=pocket)")
-    sv.add_argument("--max-phones", type=int, help="phone devices the service may create (default 32)")
-    sv.add_argument("--max-message-kb", type=int, help="largest message accepted (KiB)")
-    sv.add_argument("--max-rate", type=float, help="messages per second per client")
-    sv.add_argument("--max-connections-per-host", type=int)
+    add_flags(sv, ServeConfig)  # one flag per [serve] setting (capture.app.serve.config)
     sv.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long")
     sv.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines (0: none)")
     sv.add_argument("--config", metavar="FILE")
@@ -78,55 +55,6 @@ def _print_qr(url: str) -> None:
         log.info("no QR code: %s", exc)
 
 
-#: ``perfcap serve`` flags that are ``[serve]`` settings (flag dest -> key)
-_SERVE_FLAGS = ("host", "port", "public_host", "control_host", "control_port", "state_dir", "sessions_dir",
-                "osc_port", "osc_allow", "osc_map", "hyperimu_port", "hyperimu_tcp_port", "hyperimu_allow",
-                "hyperimu_sensors", "max_phones", "max_message_kb", "max_rate", "max_connections_per_host")
-
-
-def _serve_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    o: dict[str, Any] = {k: getattr(args, k) for k in _SERVE_FLAGS}
-    if args.no_tls:
-        o["tls"] = False
-    if args.no_mdns:
-        o["mdns"] = False
-    if args.connect_sensorserver:
-        o["connect_sensorserver"] = True
-    if args.phone_name:
-        o["phone_names"] = ",".join(args.phone_name)
-    return o
-
-
-def _serve_config(ss: Any) -> Any:
-    """``ServeConfig`` from the ``[serve]`` settings.
-
-    Raises:
-        ConfigError: a phone name entry is malformed.
-    """
-    from capture.app.serve.gateway import Limits
-    from capture.app.serve.service import ServeConfig
-
-    names = {}
-    for item in (i.strip() for i in ss.phone_names.split(",")):
-        if not item:
-            continue
-        key, sep, name = item.partition("=")
-        if not sep or "/" not in key or not name:
-            raise ConfigError(f"phone name {item!r}: expected PROTOCOL/ID=NAME, e.g. page/5f2c0a=pocket")
-        names[key.strip()] = name.strip()
-    limits = Limits(max_message_bytes=ss.max_message_kb * 1024, max_push_bytes=ss.max_push_mb << 20,
-                    rate_hz=ss.max_rate, burst=max(ss.max_rate * 2, 1.0), max_connections=ss.max_phones * 2,
-                    max_connections_per_host=ss.max_connections_per_host)
-    return ServeConfig(host=ss.host, port=ss.port, tls=ss.tls, public_host=ss.public_host,
-                       control_host=ss.control_host, control_port=ss.control_port, state_dir=ss.state_dir,
-                       mdns=ss.mdns, mdns_interfaces=ss.mdns_interfaces,
-                       connect_sensorserver=ss.connect_sensorserver, sensorserver_types=ss.sensorserver_types,
-                       osc_port=ss.osc_port, osc_allow=ss.osc_allow, osc_map=ss.osc_map,
-                       hyperimu_port=ss.hyperimu_port, hyperimu_tcp_port=ss.hyperimu_tcp_port,
-                       hyperimu_allow=ss.hyperimu_allow, hyperimu_sensors=ss.hyperimu_sensors,
-                       max_phones=ss.max_phones, limits=limits, names=names, sessions_dir=ss.sessions_dir)
-
-
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -134,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
     from devices import parse_device_spec
 
     check_duration(args.duration)
-    s = settings(args, serve=_serve_overrides(args))
-    cfg = _serve_config(s.serve)
+    s = settings(args, serve=flag_values(args, ServeConfig))
+    cfg = s.serve
     specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
     if args.rotate_token:
         from capture.app.serve.security import TokenStore

@@ -28,6 +28,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from capture.clock import MONOTONIC, Clock
 from capture.sample import Chunk, Direction
+from capture.app.serve.config import Limits
 from capture.app.serve.security import AllowList, RateLimit, Rejections, TokenStore
 from devices.transports.network import Inbox
 
@@ -50,23 +51,6 @@ class PhoneRegistry(Protocol):
     def admit(self, protocol: str, remote_id: str, peer: str, info: dict[str, Any]) -> tuple[str, Inbox] | None:
         """The (device name, connected inbox) for this phone, creating its device the first time;
         None when no more phones are allowed."""
-
-
-@dataclass
-class Limits:
-    """Bounds per client. ``rate_hz`` and ``burst`` are messages per second per connection (UDP: per
-    source host)."""
-
-    max_message_bytes: int = 64 * 1024   # WebSocket and UDP messages
-    max_push_bytes: int = 4 << 20        # one Sensor Logger POST (a batch period of every sensor)
-    rate_hz: float = 200.0
-    burst: float = 400.0
-    max_connections: int = 32
-    max_connections_per_host: int = 4
-    hello_timeout_s: float = 3.0
-    max_pending_hello: int = 64    # connections waiting for their hello, in total
-    max_malformed: int = 20        # per connection before it is closed
-    ping_s: float = 1.0
 
 
 @dataclass

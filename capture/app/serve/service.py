@@ -21,7 +21,7 @@ import re
 import socket
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,8 @@ from capture.clock import MONOTONIC, Clock
 from capture.errors import CaptureError, ConfigError
 from capture.app.orchestrator import Capture
 from capture.app.serve.discovery import Discovery, FoundService
-from capture.app.serve.gateway import CLOSE_TOKEN, Gateway, Limits
+from capture.app.serve.config import ServeConfig
+from capture.app.serve.gateway import CLOSE_TOKEN, Gateway
 from capture.app.serve.security import AllowList, TokenStore
 from capture.app.serve.tls import Certificate, ensure_certificate
 from devices import DeviceSpec, ReconnectPolicy
@@ -68,8 +69,6 @@ def lan_address() -> str:
 def _url_host(host: str) -> str:
     return f"[{host}]" if ":" in host and not host.startswith("[") else host
 
-
-_PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
 
 
 class PhoneDevices:
@@ -138,52 +137,6 @@ class PhoneDevices:
 
 
 @dataclass
-class ServeConfig:
-    """Everything ``perfcap serve`` listens on and how (``[serve]`` in the config; CLI flags)."""
-
-    host: str = "0.0.0.0"
-    port: int = 8443
-    tls: bool = True
-    public_host: str = ""           # the address phones use (URL, certificate); "" = detected
-    control_host: str = "127.0.0.1"
-    control_port: int = 8780
-    state_dir: str = ""             # token and certificate; "" = $XDG_DATA_HOME/perfcap/serve
-    token: str | None = None        # a fixed token (tests); None = the stored one
-    mdns: bool = True
-    mdns_interfaces: str = "all"    # "all" or comma-separated interface addresses
-    connect_sensorserver: bool = False
-    sensorserver_types: str = "accelerometer,gyroscope"
-    osc_port: int = 0               # 0 = off
-    osc_allow: str = ""
-    osc_map: str = "zigsim"
-    hyperimu_port: int = 0          # UDP; 0 = off
-    hyperimu_tcp_port: int = 0      # 0 = off
-    hyperimu_allow: str = ""
-    hyperimu_sensors: str = "accelerometer,gyroscope,magnetometer"
-    max_phones: int = 32
-    limits: Limits = field(default_factory=Limits)
-    names: dict[str, str] = field(default_factory=dict)
-    sessions_dir: str = "."
-
-    def check(self) -> None:
-        if self.public_host and not _PUBLIC_HOST_RE.match(self.public_host):
-            raise ConfigError(f"public host {self.public_host!r} is not a host name or address (ASCII letters, digits,"
-                              " '.', '-', ':')")
-        if not -1 <= self.control_port <= 65535:
-            raise ConfigError(f"control port {self.control_port} is not a port number (0-65535, or -1 for none)")
-        for port, what in ((self.port, "port"), (self.osc_port, "OSC port"),
-                           (self.hyperimu_port, "HyperIMU port"), (self.hyperimu_tcp_port, "HyperIMU TCP port")):
-            if not 0 <= port <= 65535:
-                raise ConfigError(f"{what} {port} is not a port number (0-65535)")
-        if self.osc_port and not AllowList(self.osc_allow):
-            raise ConfigError("OSC cannot carry a pairing token, so --osc-port needs --osc-allow with the phones' "
-                              "addresses (e.g. --osc-allow 192.168.1.23 or 192.168.1.0/24)")
-        if (self.hyperimu_port or self.hyperimu_tcp_port) and not AllowList(self.hyperimu_allow):
-            raise ConfigError("HyperIMU cannot carry a pairing token, so --hyperimu-port needs --hyperimu-allow with "
-                              "the phones' addresses (e.g. --hyperimu-allow 192.168.1.23)")
-
-
-@dataclass
 class Endpoints:
     """Where the service listens, known once it runs."""
 
@@ -226,12 +179,13 @@ class Service:
         opts: dict[str, dict[str, Any]] = {"osc": {"map": config.osc_map},
                                            "hyperimu": {"sensors": config.hyperimu_sensors}}
         self._check_phone_options(opts)
-        taken = {d.name for d in self.capture.devices} & set(config.names.values())
+        names = config.phone_name_map()
+        taken = {d.name for d in self.capture.devices} & set(names.values())
         if taken:
             self.capture.stop()
             raise ConfigError(f"phone name(s) {', '.join(sorted(taken))} are already names of configured devices")
-        self.phones = PhoneDevices(self.capture, self.hub_name, config.names, opts, config.max_phones)
-        self.gateway = Gateway(self.phones, self.tokens, config.limits, clock)
+        self.phones = PhoneDevices(self.capture, self.hub_name, names, opts, config.max_phones)
+        self.gateway = Gateway(self.phones, self.tokens, config.client_limits(), clock)
         self.endpoints = Endpoints()
         self.discovery: Discovery | None = None
         self.certificate: Certificate | None = None

@@ -71,3 +71,38 @@ def test_environment_errors():
     with pytest.raises(ConfigError, match="PERFCAP_BUS_SIZE is not a setting"):
         load_config(env={"PERFCAP_BUS_SIZE": "1"})
     assert load_config(env={"PERFCAP_RECORDER_FSYNC": "off"}).recorder.fsync is False
+
+
+def test_default_toml_documents_exactly_the_built_in_defaults():
+    """config/default.toml and the settings' one definition cannot drift apart: same sections, same
+    keys, same values."""
+    import tomllib
+    from dataclasses import fields as dc_fields
+
+    from capture.app.config import PROFILE_DIR, SECTIONS, Settings
+    from capture.app.schema import setting_fields
+
+    doc = tomllib.loads((PROFILE_DIR / "default.toml").read_text(encoding="utf-8"))
+    built_in = Settings()
+    assert set(doc) == set(SECTIONS)
+    for name, cls in SECTIONS.items():
+        keys = [f.name for f, _ in setting_fields(cls)]
+        assert list(doc[name]) == keys, name
+        for key in keys:
+            assert doc[name][key] == getattr(getattr(built_in, name), key), f"{name}.{key}"
+        assert {f.name for f in dc_fields(cls)} >= set(keys)
+
+
+def test_every_serve_setting_is_a_flag_and_a_key():
+    """The flags of perfcap serve are derived from the same definition as the [serve] keys."""
+    from capture.app.cli import build_parser
+    from capture.app.schema import flag_name, setting_fields
+    from capture.app.serve.config import ServeConfig
+
+    serve = build_parser()._subparsers._group_actions[0].choices["serve"]   # the subparser of perfcap serve
+    flags = {s for a in serve._actions for s in a.option_strings}
+    for f, opt in setting_fields(ServeConfig):
+        assert flag_name(f, opt) in flags, f.name
+    s = load_config(overrides={"serve": {"osc_port": 9000, "osc_allow": "127.0.0.1", "tls": False}}, env={})
+    assert (s.serve.osc_port, s.serve.tls) == (9000, False)
+    assert load_config(env={"PERFCAP_SERVE_MAX_PUSH_MB": "8"}).serve.client_limits().max_push_bytes == 8 << 20

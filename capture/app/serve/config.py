@@ -1,0 +1,127 @@
+"""The one definition of ``perfcap serve``'s settings: ``ServeConfig``.
+
+Every field made with ``capture.app.schema.setting`` is a ``[serve]`` key in a config file, a
+``PERFCAP_SERVE_<KEY>`` environment variable and a ``perfcap serve`` flag (``--osc-port``;
+``--no-tls`` for a setting on by default, ``--connect-sensorserver`` for one off by default); its
+type, default, help, range and choices are written once, here, and the file schema
+(``capture.app.config``) and the flags (``capture.app.schema.add_flags``) are derived from them.
+
+The few fields that are not settings (a fixed token, exact ``Limits``, fixed names) are for programs
+that build a service in code (tests, the demo).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+from capture.app.schema import parse_value, setting, setting_fields
+from capture.errors import ConfigError
+
+#: a host name or an address: what may go in URLs and the certificate
+_PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
+
+
+@dataclass
+class Limits:
+    """Bounds per client. ``rate_hz`` and ``burst`` are messages per second per connection (UDP: per
+    source host)."""
+
+    max_message_bytes: int = 64 * 1024   # WebSocket and UDP messages
+    max_push_bytes: int = 4 << 20        # one Sensor Logger POST (a batch period of every sensor)
+    rate_hz: float = 200.0
+    burst: float = 400.0
+    max_connections: int = 32
+    max_connections_per_host: int = 4
+    hello_timeout_s: float = 3.0
+    max_pending_hello: int = 64    # connections waiting for their hello, in total
+    max_malformed: int = 20        # per connection before it is closed
+    ping_s: float = 1.0
+
+
+PORT = {"min": 0, "max": 65535}
+
+
+@dataclass
+class ServeConfig:
+    """Everything ``perfcap serve`` listens on and how."""
+
+    host: str = setting("0.0.0.0", "address the phone endpoints listen on (default all)")
+    port: int = setting(8443, "phone page / WebSocket / Sensor Logger port (HTTPS)", **PORT)
+    public_host: str = setting("", "address phones use to reach this machine (default: detected LAN address)")
+    tls: bool = setting(True, "plain HTTP (browsers then refuse motion sensors)")
+    control_host: str = setting("127.0.0.1", "control API address (default loopback only)")
+    control_port: int = setting(8780, "control API port (-1: none)", min=-1, max=65535)
+    state_dir: str = setting("", "where the token and certificate are kept (default $XDG_DATA_HOME/perfcap/serve)")
+    sessions_dir: str = setting(".", "where POST /api/record/start puts sessions without a path")
+    mdns: bool = setting(True, "do not advertise or browse with mDNS")
+    mdns_interfaces: str = setting("all", "interfaces mDNS uses: all, or comma-separated interface addresses")
+    connect_sensorserver: bool = setting(False, "connect to SensorServer phones found by mDNS without asking")
+    sensorserver_types: str = setting("accelerometer,gyroscope", "the sensors asked of SensorServer phones")
+    osc_port: int = setting(0, "OSC UDP port (ZIG SIM, GyrOSC); off by default", **PORT)
+    osc_allow: str = setting("", "addresses allowed to send OSC (needed with --osc-port)")
+    osc_map: str = setting("zigsim", "OSC address map: zigsim, gyrosc or a custom map")
+    hyperimu_port: int = setting(0, "HyperIMU UDP port; off by default", **PORT)
+    hyperimu_tcp_port: int = setting(0, "HyperIMU TCP port; off by default", **PORT)
+    hyperimu_allow: str = setting("", "addresses allowed to send HyperIMU CSV")
+    hyperimu_sensors: str = setting("accelerometer,gyroscope,magnetometer",
+                                    "HyperIMU's enabled sensors, in the app's order")
+    phone_names: str = setting("", "a fixed device name for a phone (e.g. page/5f2c0a...=pocket)",
+                               flag="--phone-name", metavar="PROTOCOL/ID=NAME", repeat=True)
+    max_phones: int = setting(32, "phone devices the service may create (default 32)", min=1, max=10_000)
+    max_message_kb: int = setting(64, "largest message accepted (KiB)", min=1, max=1 << 20)
+    max_push_mb: int = setting(4, "largest Sensor Logger push accepted (MiB)", min=1, max=1024)
+    max_rate: float = setting(200.0, "messages per second per client", min=0.1, max=1e6)
+    max_connections_per_host: int = setting(4, "connections one host may hold open", min=1, max=10_000)
+    # -- not settings: for a service built in code ---------------------------------------------------
+    token: str | None = None        # a fixed token (tests); None = the stored one
+    limits: Limits | None = None    # exact limits; None = from the max_* settings
+    names: dict[str, str] = field(default_factory=dict)   # fixed names besides phone_names
+
+    def phone_name_map(self) -> dict[str, str]:
+        """``phone_names`` (``PROTOCOL/ID=NAME,...``) and ``names``, by ``PROTOCOL/ID``.
+
+        Raises:
+            ConfigError: a phone name entry is malformed.
+        """
+        out: dict[str, str] = {}
+        for item in (i.strip() for i in self.phone_names.split(",")):
+            if not item:
+                continue
+            key, sep, name = item.partition("=")
+            if not sep or "/" not in key or not name:
+                raise ConfigError(f"phone name {item!r}: expected PROTOCOL/ID=NAME, e.g. page/5f2c0a=pocket")
+            out[key.strip()] = name.strip()
+        out.update(self.names)
+        return out
+
+    def client_limits(self) -> Limits:
+        """``limits``, or the limits the ``max_*`` settings give."""
+        if self.limits is not None:
+            return self.limits
+        return Limits(max_message_bytes=self.max_message_kb * 1024, max_push_bytes=self.max_push_mb << 20,
+                      rate_hz=self.max_rate, burst=max(self.max_rate * 2, 1.0), max_connections=self.max_phones * 2,
+                      max_connections_per_host=self.max_connections_per_host)
+
+    def check(self) -> None:
+        """Every setting within its type and range, and the combinations that need each other.
+
+        Raises:
+            ConfigError: the first problem found.
+        """
+        from capture.app.serve.security import AllowList
+
+        for f, opt in setting_fields(ServeConfig):
+            parse_value(opt, f"serve.{f.name}", getattr(self, f.name), "serve settings", from_text=False)
+        if self.public_host and not _PUBLIC_HOST_RE.match(self.public_host):
+            raise ConfigError(f"public host {self.public_host!r} is not a host name or address (ASCII letters, digits,"
+                              " '.', '-', ':')")
+        if self.osc_port and not AllowList(self.osc_allow):
+            raise ConfigError("OSC cannot carry a pairing token, so --osc-port needs --osc-allow with the phones' "
+                              "addresses (e.g. --osc-allow 192.168.1.23 or 192.168.1.0/24)")
+        if (self.hyperimu_port or self.hyperimu_tcp_port) and not AllowList(self.hyperimu_allow):
+            raise ConfigError("HyperIMU cannot carry a pairing token, so --hyperimu-port needs --hyperimu-allow with "
+                              "the phones' addresses (e.g. --hyperimu-allow 192.168.1.23)")
+        self.phone_name_map()
+
+
