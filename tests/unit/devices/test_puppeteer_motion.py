@@ -12,7 +12,7 @@ from capture.app.puppet_input import attitude_quaternions
 from capture.sample import DeviceIdentity, StreamInfo
 from retarget.puppet import PhoneInput, PuppetRetargeter
 from retarget.states import PuppetState as S
-from sim_devices.motion import G, PHONE_MOTIONS, PuppeteerMotion, WavingMotion, phone_motion
+from sim_devices.motion import PHONE_MOTIONS, G, PuppeteerMotion, WavingMotion, phone_motion
 
 ATTITUDE = StreamInfo("ph/attitude", "euler", ("alpha", "beta", "gamma"), ("deg",) * 3, None,
                       DeviceIdentity("phone", "ph"))
