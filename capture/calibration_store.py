@@ -18,13 +18,16 @@ import logging
 import os
 import re
 from pathlib import Path
-from typing import Any
-from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from capture.calibration import ImuCalibration
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
-from capture.sample import DeviceIdentity
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from capture.sample import DeviceIdentity
 
 log = logging.getLogger(__name__)
 
@@ -146,4 +149,4 @@ class CalibrationStore:
         return out
 
 
-__all__ = ["CalibrationStore", "default_dir", "identity_key", "calibration_document", "parse_calibration_document"]
+__all__ = ["CalibrationStore", "calibration_document", "default_dir", "identity_key", "parse_calibration_document"]

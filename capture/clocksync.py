@@ -45,11 +45,14 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from capture.sample import ClockState, DeviceClockSpec
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +103,7 @@ _LOOKAHEAD = 512
 class _BinRing:
     """The last ``n`` per-bin extreme points (x, y), oldest first, in preallocated arrays."""
 
-    __slots__ = ("_x", "_y", "_n", "_count", "_head")
+    __slots__ = ("_count", "_head", "_n", "_x", "_y")
 
     def __init__(self, n: int) -> None:
         self._x = [0.0] * n
@@ -203,9 +206,9 @@ class ClockSync:
             window_s = 4.0 if self.pseudo else 20.0
         # Bins and refits are anchored to absolute device time (integer ns), so the fit does not
         # depend on which reading happened to start an epoch or how reads were split.
-        self._bin_ns = max(1, int(round(bin_s * 1e9)))
-        self._refit_ns = max(1, int(round(refit_s * 1e9)))
-        n = max(2, int(math.ceil(window_s / bin_s)))
+        self._bin_ns = max(1, round(bin_s * 1e9))
+        self._refit_ns = max(1, round(refit_s * 1e9))
+        n = max(2, math.ceil(window_s / bin_s))
         self._mins = _BinRing(n)
         self._maxs = _BinRing(n)
         self._gap_ns = (gap_s * 1e9) if gap_s is not None else max(50e6, 4 * self._period_ns)
@@ -289,7 +292,7 @@ class ClockSync:
             c0 = self._counter
             self._counter += n
             p = self._period_ns
-            devs = [int(round((c0 + i) * p)) for i in range(n)]
+            devs = [round((c0 + i) * p) for i in range(n)]
             out_dev = [None] * n
             point = devs[-1]
         self._observe(point, t_host_ns)
@@ -361,7 +364,7 @@ class ClockSync:
             raise ValueError(f"{self.stream}: a send time given to a stream declared without a device clock")
         elif self.spec is None:
             bus = np.empty(n, np.int64)
-            for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist()):
+            for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist(), strict=True):
                 bus[f:l_ + 1] = self._irregular(h, l_ - f + 1)
             return None, bus, np.full(n, self.epoch, np.int64)
         else:
@@ -392,7 +395,7 @@ class ClockSync:
         if self.epoch < 0 or self.spec is None:
             return None
         return ClockState(self.stream, t_host_ns, self.epoch, int(self._x0),
-                          int(round(self._x0 + self._y0 + self._a)), 1.0 + self._b, self.points, self.pseudo)
+                          round(self._x0 + self._y0 + self._a), 1.0 + self._b, self.points, self.pseudo)
 
     def pop_state(self, t_host_ns: int) -> ClockState | None:
         """The fit if it changed since the last call (for recording the clock-sync history)."""
@@ -417,8 +420,8 @@ class ClockSync:
         out: list[int] = []
         wrap = self._wrap
         npt = self._ns_per_tick
-        for i, raw in enumerate(ticks):
-            raw = int(raw)
+        for i, tick in enumerate(ticks):
+            raw = int(tick)
             if self._last_raw is not None and wrap:
                 step = raw - self._last_raw
                 expected = (t_host_ns - self._last_host) / npt if i == 0 and self.epoch >= 0 else 0.0
@@ -427,7 +430,7 @@ class ClockSync:
                     self._wraps += k
             self._last_raw = raw
             total = raw + self._wraps * wrap if wrap else raw
-            out.append(total * self._npt_int if self._npt_int else int(round(total * npt)))
+            out.append(total * self._npt_int if self._npt_int else round(total * npt))
         return out
 
     def _unwrap_many(self, raw: np.ndarray, first_idx: np.ndarray, hosts: np.ndarray) -> np.ndarray:
@@ -529,7 +532,7 @@ class ClockSync:
         maxs = np.maximum.reduceat(ys, starts)
         first_min = _first_per_run(np.flatnonzero(ys == mins[run_id]), run_id)
         first_max = _first_per_run(np.flatnonzero(ys == maxs[run_id]), run_id)
-        for bi, jmin, jmax in zip(bins[starts].tolist(), first_min.tolist(), first_max.tolist()):
+        for bi, jmin, jmax in zip(bins[starts].tolist(), first_min.tolist(), first_max.tolist(), strict=True):
             ymin, ymax = float(ys[jmin]), float(ys[jmax])
             if bi != self._bin:
                 self._mins.append(self._bin_min)

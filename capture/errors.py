@@ -71,7 +71,7 @@ class DeviceTimeoutError(DeviceError, TimeoutError):
     """The device did not answer in time."""
 
 
-class EndOfStream(DeviceError):
+class EndOfStream(DeviceError):  # noqa: N818 - the end of a finite source, not a failure
     """A finite source (a replayed session, a synthetic take with a duration) is exhausted."""
 
 

@@ -8,8 +8,12 @@ that owns that frame (z-up sensor fusion in :mod:`capture.calibration`, y-up cha
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 __all__ = [
     "cross",
@@ -123,9 +127,9 @@ def quat_to_matrix_components(q: np.ndarray) -> np.ndarray:
 
 def _matrices_small(q: np.ndarray) -> np.ndarray:
     # fewer numpy calls than _matrix_components: faster for a handful of quaternions
-    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
+    qq = (q[..., :, None] * q[..., None, :]).reshape((*q.shape[:-1], 16))
     m = (qq @ _Q2M) / np.maximum(qq[..., ::5].sum(axis=-1, keepdims=True), 1e-300)
-    return m.reshape(q.shape[:-1] + (3, 3))
+    return m.reshape((*q.shape[:-1], 3, 3))
 
 
 def quat_to_matrix(q: ArrayLike) -> np.ndarray:
@@ -179,7 +183,7 @@ def quat_from_matrix(m: ArrayLike) -> np.ndarray:
     q = cand[np.arange(len(cand)), best]
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q *= np.where(q[:, :1] < 0.0, -1.0, 1.0)
-    return q.reshape(lead + (4,))
+    return q.reshape((*lead, 4))
 
 
 def quat_from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> np.ndarray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any
+from typing import Any, cast
 
 from capture.bus import EVERYTHING, Subscriber
 from capture.clock import MONOTONIC, Clock
@@ -60,7 +60,7 @@ class SessionRecorder(Subscriber):
         self.encode_ns = int(min(encode_interval_s, max_loss_s / 4) * 1e9)
         self._raw: dict[str, list[Chunk]] = {}
         self._smp: dict[str, list[Sample | SampleBatch]] = {}
-        self._ctrl: list[ClockState | DeviceEvent] = []
+        self._ctrl: list[ClockState | DeviceDescriptor | DeviceEvent] = []
         self._channels: dict[str, int] = {}
         now = clock.now_ns()
         self._next_encode = now + self.encode_ns
@@ -130,7 +130,7 @@ class SessionRecorder(Subscriber):
         try:
             with self._wlock:
                 self._tick_locked(now)
-        except Exception as exc:  # noqa: BLE001 - a writing failure stops the recording loudly, never silently
+        except Exception as exc:
             self.failed = exc if isinstance(exc, SessionError) else SessionError(
                 f"internal error while writing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
             log.error("recorder: %s; recording stopped, data up to the last flush is kept", self.failed)
@@ -166,7 +166,7 @@ class SessionRecorder(Subscriber):
                     if run:
                         blocks.append(SampleBatch.from_samples(stream, run, ch))
                         run = []
-                    blocks.append(it)  # type: ignore[arg-type]
+                    blocks.append(cast("SampleBatch", it))   # the stream's items are samples and batches
             if run:
                 blocks.append(SampleBatch.from_samples(stream, run, ch))
             batch = SampleBatch.concat(blocks)
@@ -174,12 +174,12 @@ class SessionRecorder(Subscriber):
             self.counts[stream] = self.counts.get(stream, 0) + len(batch)
         ctrl, self._ctrl = self._ctrl, []
         for c in ctrl:
-            if type(c) is ClockState:
-                w.write_clock(c, now)  # type: ignore[arg-type]
-            elif type(c) is DeviceDescriptor:
-                w.add_descriptor(c.device, c.key, c.data)  # type: ignore[union-attr]
+            if isinstance(c, ClockState):
+                w.write_clock(c, now)
+            elif isinstance(c, DeviceDescriptor):
+                w.add_descriptor(c.device, c.key, c.data)
             else:
-                w.write_event(c, now)  # type: ignore[arg-type]
+                w.write_event(c, now)
 
     def on_error(self, exc: BaseException) -> None:
         log.error("recorder: %s", exc)
@@ -197,7 +197,7 @@ class SessionRecorder(Subscriber):
                 self.summary_extra["recorder_max_pending"] = st.max_pending
             self.writer.close({"samples": self.counts, "raw_chunks": self.raw_chunks,
                                "raw_bytes": self.writer.bytes_raw, **self.summary_extra})
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             self.failed = exc if isinstance(exc, SessionError) else SessionError(
                 f"internal error while closing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
             log.error("recorder: %s", self.failed)

@@ -18,10 +18,12 @@ from __future__ import annotations
 import enum
 import json
 from dataclasses import asdict, dataclass, field
-from typing import Any, NamedTuple
-from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
 
 #: Sentinel used in int64 columns for "no device timestamp".
 NO_TIME: int = np.iinfo(np.int64).min
@@ -61,7 +63,7 @@ class SampleBatch:
         """The batch as single samples (for consumers that want them one by one)."""
         tdev = self.t_device_ns.tolist()
         for i, (s, th, tb, v) in enumerate(zip(self.seq.tolist(), self.t_host_ns.tolist(),
-                                                self.t_bus_ns.tolist(), self.values.tolist())):
+                                                self.t_bus_ns.tolist(), self.values.tolist(), strict=True)):
             td = tdev[i]
             yield Sample(self.stream, s, th, None if td == NO_TIME else td, tb, tuple(v))
 
@@ -72,7 +74,7 @@ class SampleBatch:
         if n == 0:
             e = np.empty(0, np.int64)
             return cls(stream, e, e.copy(), e.copy(), e.copy(), np.empty((0, channels)))
-        _, seq, th, td, tb, vals = zip(*samples)  # C-level transposition
+        _, seq, th, td, tb, vals = zip(*samples, strict=True)  # C-level transposition
         tdev = [NO_TIME if x is None else x for x in td] if None in td else td
         return cls(stream, np.array(seq, np.int64), np.array(th, np.int64), np.array(tdev, np.int64),
                    np.array(tb, np.int64), np.array(vals, np.float64).reshape(n, channels))
@@ -141,7 +143,7 @@ class StreamInfo:
     frame: str | None = None
     clock: DeviceClockSpec | None = None
     quantum: tuple[float, ...] | None = None
-    extra: dict[str, str] = field(default_factory=dict)
+    extra: dict[str, str | bool] = field(default_factory=dict)   # kept as JSON: what made the stream
 
     def __post_init__(self) -> None:
         if len(self.channels) != len(self.units):
@@ -192,7 +194,7 @@ class ChunkRun:
     Python object per chunk; ``run[i]`` and iteration give ordinary ``Chunk``s when needed.
     """
 
-    __slots__ = ("data", "lengths", "t_ns", "directions", "_offsets")
+    __slots__ = ("_offsets", "data", "directions", "lengths", "t_ns")
 
     def __init__(self, data: bytes, lengths: np.ndarray, t_ns: np.ndarray, directions: np.ndarray) -> None:
         self.data = data
@@ -238,7 +240,7 @@ class ChunkRun:
         o = self.offsets.tolist()
         d = self.data
         dirs = (Direction.RX, Direction.TX)
-        for i, (t, dr) in enumerate(zip(self.t_ns.tolist(), self.directions.tolist())):
+        for i, (t, dr) in enumerate(zip(self.t_ns.tolist(), self.directions.tolist(), strict=True)):
             yield Chunk(d[o[i]:o[i + 1]], t, dirs[dr])
 
 
@@ -272,7 +274,7 @@ class ClockState(NamedTuple):
         return d
 
 
-class EventKind(str, enum.Enum):
+class EventKind(str, enum.Enum):  # noqa: UP042 - str() and format() of a member keep their meaning
     OPENED = "opened"
     STREAMING = "streaming"
     DISCONNECTED = "disconnected"

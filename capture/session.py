@@ -25,11 +25,10 @@ import json
 import logging
 import os
 import socket
-import threading
 import struct
-from collections.abc import Iterator
+import threading
 from dataclasses import dataclass, field
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO, ClassVar
 
 import numpy as np
 
@@ -44,6 +43,9 @@ from capture.sample import (
     SampleBatch,
     StreamInfo,
 )
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
 
 log = logging.getLogger(__name__)
 
@@ -165,8 +167,8 @@ def _value_columns(vals: np.ndarray, quantum: tuple[float, ...] | None) -> list[
     for j in range(c):
         if quant_ok[j]:
             out.append(_q.pack(1, float(q[j])) + d32[j].tobytes())
-        else:
-            out.append(b"\x00" + planes[j].tobytes())  # type: ignore[index]
+        elif planes is not None:    # (not quantised: its float64 planes)
+            out.append(b"\x00" + planes[j].tobytes())
     return out
 
 
@@ -303,7 +305,6 @@ class SessionWriter:
             "kind": rec.kind, "url": rec.url, "options": json.dumps(rec.options, sort_keys=True),
             "identity": json.dumps(rec.identity, sort_keys=True), "streams": json.dumps(rec.streams)})
         for key, blob in rec.descriptors.items():
-            from mcap.records import Attachment  # noqa: F401 - the writer builds it
             self._w.add_attachment(0, 0, f"{rec.name}/{key}", "application/octet-stream", blob)
         self._channel(f"/raw/{rec.name}", RAW_ENCODING, self._raw_schema, {"device": rec.name, "kind": rec.kind})
         for s in streams:
@@ -401,7 +402,7 @@ class SessionReader:
         SessionError: the file does not exist, is not readable, or is not a perfcap session.
     """
 
-    _cache: dict[tuple[str, int, int], SessionReader] = {}
+    _cache: ClassVar[dict[tuple[str, int, int], SessionReader]] = {}
     _cache_lock = threading.Lock()
 
     def __init__(self, path: str, progress: Any = None) -> None:
@@ -519,7 +520,7 @@ class SessionReader:
                         records = breakup_chunk(Chunk.read(rds), validate_crc=True)
                     else:
                         records = [parsers[opcode](rds)]
-                except Exception as exc:  # noqa: BLE001 - any parse failure is damage, counted
+                except Exception as exc:
                     self._damage("MCAP record" if opcode != Opcode.CHUNK else "MCAP chunk", exc)
                     continue
                 for rec in records:
@@ -565,7 +566,7 @@ class SessionReader:
         for data in self._msgs.get(topic, ()):
             try:
                 out = decode(data)
-            except Exception as exc:  # noqa: BLE001 - a damaged block is skipped and counted
+            except Exception as exc:
                 self._damage(f"block of {topic}", exc)
                 continue
             yield out

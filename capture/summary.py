@@ -4,10 +4,12 @@ devices, clock fits, events, and whether the file was closed cleanly."""
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capture.sample import NO_TIME
-from capture.session import SessionReader
+
+if TYPE_CHECKING:
+    from capture.session import SessionReader
 
 
 def summarize(reader: SessionReader) -> dict[str, Any]:
@@ -22,15 +24,15 @@ def summarize(reader: SessionReader) -> dict[str, Any]:
         rate = 0.0
         drops = 0
         has_dev = False
-        if n:
-            tb = b.t_bus_ns  # type: ignore[union-attr]
+        if b is not None and n:
+            tb = b.t_bus_ns
             t_min = int(tb[0]) if t_min is None else min(t_min, int(tb[0]))
             t_max = int(tb[-1]) if t_max is None else max(t_max, int(tb[-1]))
             span = (int(tb[-1]) - int(tb[0])) / 1e9
             rate = (n - 1) / span if span > 0 and n > 1 else 0.0
-            seq = b.seq  # type: ignore[union-attr]
+            seq = b.seq
             drops = int((seq[-1] - seq[0] + 1) - n)
-            has_dev = bool((b.t_device_ns != NO_TIME).any())  # type: ignore[union-attr]
+            has_dev = bool((b.t_device_ns != NO_TIME).any())
         streams.append({
             "name": name, "kind": info.kind, "device": info.device.name, "device_kind": info.device.kind,
             "samples": n, "rate_hz": round(rate, 3), "nominal_rate_hz": info.nominal_rate_hz, "drops": drops,
@@ -73,4 +75,4 @@ def drop_total(summary: dict[str, Any]) -> int:
     return int(sum(s["drops"] for s in summary["streams"])) + int(summary.get("recorder_dropped") or 0)
 
 
-__all__ = ["summarize", "drop_total"]
+__all__ = ["drop_total", "summarize"]

@@ -434,7 +434,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if len(bias) != 3:
                 raise ConfigError(f"--gyro-bias {args.gyro_bias!r}: expected X,Y,Z in deg/s")
             src = WavingSource(args.kind, args.rate, args.seed, device_clock=not args.no_device_clock,
-                               amplitude_deg=0.0 if args.still else 40.0, gyro_bias_dps=bias,  # type: ignore[arg-type]
+                               amplitude_deg=0.0 if args.still else 40.0, gyro_bias_dps=bias,
                                gyro_noise_dps=args.gyro_noise, heading_deg=args.heading)
         sim = PtySerialDevice(src, args.link, burst_ms=args.burst_ms, burst_bytes=args.burst_bytes,
                               garbage=args.garbage, unplug_every=args.unplug_every, unplug_for=args.unplug_for,

@@ -8,7 +8,6 @@ Each step returns the updated calibration, what it measured (for ``--json``) and
 from __future__ import annotations
 
 import sys
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -20,6 +19,8 @@ from capture.errors import ConfigError
 from capture.sample import Sample, SampleBatch
 
 if TYPE_CHECKING:
+    import threading
+
     from capture.app.config import Settings
     from capture.calibration import ImuCalibration
     from devices import DeviceSpec

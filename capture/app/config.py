@@ -153,8 +153,8 @@ def _devices(where: str, data: Any) -> list[DeviceSpec]:
                               source=where)
         unknown = set(d) - {"url", "kind", "name", "options"}
         if unknown:
-            raise ConfigError(f"{at}: unknown key {sorted(unknown)[0]!r}; a device table takes url, kind, name, options",
-                              source=where)
+            raise ConfigError(f"{at}: unknown key {sorted(unknown)[0]!r}; a device table takes url, kind, name,"
+                              " options", source=where)
         if "url" not in d or not isinstance(d["url"], str):
             raise ConfigError(f"{at}: url = \"SCHEME://ADDRESS\" is required", source=where)
         for k in ("kind", "name"):

@@ -230,12 +230,14 @@ def stream_lines(summary: dict[str, Any], accuracy: dict[str, float], phone: Pho
             desc = f"device clock fitted at {clk.get('drift_ppm', 0):+.1f} ppm (simulated " \
                    f"{DEMO_DRIFT_PPM.get(dev, 0):+.0f}), {clk.get('epochs', 1)} epoch(s)"
             if dev in accuracy:
-                desc += f"; bus times within {accuracy[dev]:.2f} ms of the true reading times (p99, after the first second)"
+                desc += (f"; bus times within {accuracy[dev]:.2f} ms of the true reading times"
+                         " (p99, after the first second)")
         if dev == "phone" and phone is not None:
             desc += f"; {phone.events} events sent, over TLS + WebSocket"
         if dev == "hand" and serial is not None and st["drops"]:
             desc += f"; its drops are the readings sent during the {DEMO_UNPLUG_FOR:g} s it was unplugged"
-        lines.append(f"  {st['name']:12s} {st['samples']:6d} samples {st['rate_hz']:7.2f} Hz  {st['drops']} drops  {desc}")
+        lines.append(f"  {st['name']:12s} {st['samples']:6d} samples {st['rate_hz']:7.2f} Hz  {st['drops']} drops"
+                     f"  {desc}")
     return lines
 
 
@@ -329,7 +331,7 @@ def demo_puppet(reader: SessionReader) -> str:
         ms = (MONOTONIC.now_ns() - t0) / 1e6 / max(run.frames, 1)
         clip = run.clip("puppet")
         write_bvh(path, clip)
-    except Exception as exc:  # noqa: BLE001 - the demo goes on; the reason is said in one line
+    except Exception as exc:
         return f"puppet: not driven from the phone ({type(exc).__name__}: {exc})"
     ground = np.hypot(np.diff(clip.root_pos[:, 0]), np.diff(clip.root_pos[:, 2])) * clip.fps
     held = "held throughout: the simulated phone sends no touch" if track.held_throughout else "grabbed by touch"

@@ -8,8 +8,7 @@ import json
 import logging
 import threading
 from dataclasses import dataclass, field
-from typing import Any
-from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 from capture.bus import Overflow, SampleBus, Subscriber
 from capture.clock import MONOTONIC, Clock
@@ -19,7 +18,13 @@ from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
 from capture.session import SessionWriter
 from devices import Device, DeviceReader, DeviceSpec, ReconnectPolicy, open_device
 
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping, Sequence
+
 log = logging.getLogger(__name__)
+
+#: the reconnect policy of a capture that is given none (retry with backoff, never give up)
+DEFAULT_RECONNECT = ReconnectPolicy()
 
 
 @dataclass
@@ -107,7 +112,7 @@ class CaptureReport:
 CALIBRATION_KEY = "calibration.json"
 
 
-def build_orientation(devices: Sequence[Device], filter: str, auto_bias: bool,
+def build_orientation(devices: Sequence[Device], filter: str, auto_bias: bool,  # noqa: A002 - as the CLI's --filter
                       calibrations: Mapping[str, Any]) -> Any:
     """An ``OrientationProcessor`` over every IMU stream of ``devices`` (with each device's
     magnetometer where its units allow), or None when no device has an IMU stream."""
@@ -158,7 +163,7 @@ class Capture:
     def __init__(self, devices: Sequence[Device | DeviceSpec | str], *, output: str | None = None,
                  overwrite: bool = False, max_loss_s: float = 1.0, fsync: bool = True,
                  recorder_max_bytes: int = 1 << 30, live_queue: int = 8192,
-                 reconnect: ReconnectPolicy = ReconnectPolicy(), meta: dict[str, str] | None = None,
+                 reconnect: ReconnectPolicy = DEFAULT_RECONNECT, meta: dict[str, str] | None = None,
                  clock: Clock = MONOTONIC, allow_empty: bool = False) -> None:
         if not devices and not allow_empty:
             raise ConfigError("no devices given; add at least one with -d DEVICE (e.g. -d synth://imu)")
@@ -312,7 +317,7 @@ class Capture:
         self.processors.append(proc)
         return self.bus.subscribe(proc, policy=Overflow.NEVER_DROP, name=name or type(proc).__name__)
 
-    def enable_orientation(self, filter: str = "fusion", auto_bias: bool = True,
+    def enable_orientation(self, filter: str = "fusion", auto_bias: bool = True,  # noqa: A002 - as --filter
                            calibrations: Mapping[str, Any] | None = None, store: Any = None) -> Any:
         """Orientation fusion on every IMU stream (see ``capture.orientation``), with each device's
         calibration: from ``calibrations`` (by device name), else from ``store`` (a

@@ -23,16 +23,19 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from capture.errors import ConfigError
 from capture.quat import quat_mul, quat_slerp
-from capture.sample import StreamInfo
 from retarget.puppet import PhoneInput
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from capture.sample import StreamInfo
 
 __all__ = [
     "ATTITUDE_STREAMS",
@@ -348,7 +351,7 @@ def touch_changes(t: np.ndarray, values: np.ndarray, channels: Sequence[str] = (
     st = TouchState()
     v = np.atleast_2d(np.asarray(values, np.float64))
     ids = v[:, i].tolist() if i is not None else [0.0] * len(v)
-    held = np.array([st.apply(float(a), float(b)) for a, b in zip(v[:, p].tolist(), ids)], bool)
+    held = np.array([st.apply(float(a), float(b)) for a, b in zip(v[:, p].tolist(), ids, strict=True)], bool)
     return np.asarray(t, np.float64), held
 
 

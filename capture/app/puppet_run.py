@@ -21,13 +21,18 @@ import logging
 import os
 import socket
 from collections import deque
-from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from capture.app.puppet_input import ATTITUDE_STREAMS, GRID_SLACK_NS, TouchState, attitude_quaternions, \
-    check_rate, touch_columns
+from capture.app.puppet_input import (
+    ATTITUDE_STREAMS,
+    GRID_SLACK_NS,
+    TouchState,
+    attitude_quaternions,
+    check_rate,
+    touch_columns,
+)
 from capture.bus import Subscriber
 from capture.errors import ConfigError
 from capture.quat import quat_conj, quat_mul, quat_rotate, quat_slerp
@@ -36,6 +41,9 @@ from retarget.puppet import PhoneInput, PuppetFrame, PuppetRetargeter
 from retarget.skeleton import Clip, Skeleton
 from retarget.timeline import split_heading, yaw_quat
 from retarget.vmc import VmcEncoder
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -391,7 +399,7 @@ class PuppetFollower(Subscriber):
             if type(item) is Sample:
                 rows: list[tuple[int, list[float]]] = [(int(item.t_bus_ns), list(item.values))]
             else:
-                rows = list(zip(np.asarray(item.t_bus_ns).tolist(), np.asarray(item.values).tolist()))
+                rows = list(zip(np.asarray(item.t_bus_ns).tolist(), np.asarray(item.values).tolist(), strict=True))
             p, i = self._phase_col, self._id_col
             for t, v in rows:
                 self._pending.append((int(t), float(v[p]), 0.0 if i is None else float(v[i])))
@@ -399,17 +407,17 @@ class PuppetFollower(Subscriber):
 
     def _attitude(self, t_ns: np.ndarray, values: np.ndarray) -> None:
         q = attitude_quaternions(self.attitude, values)
-        for t, qi in zip(t_ns.tolist(), q):
+        for t, qi in zip(t_ns.tolist(), q, strict=True):
             self.samples += 1
             if not np.all(np.isfinite(qi)) or (self._prev is not None and t <= self._prev[0]):
                 self.skipped += 1
                 continue
-            if self.origin_ns is None:
+            if self.origin_ns is None or self._prev is None:
                 self.origin_ns = t
                 self._frame(t, qi)
                 self.next_k = 1
             else:
-                t_prev, q_prev = self._prev  # type: ignore[misc]
+                t_prev, q_prev = self._prev
                 while True:
                     g = self.origin_ns + round(self.next_k * self.period_ns)
                     if g > t + GRID_SLACK_NS:

@@ -10,10 +10,8 @@ module only builds the URLs and uses the abilities the transport declares (``Bat
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass, field
-from typing import Any
-from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
 import numpy as np
@@ -26,6 +24,10 @@ from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
 from capture.session import SessionReader
 from devices import Device, DeviceState
 from devices.transports.base import BatchSource, RecordedTimeline
+
+if TYPE_CHECKING:
+    import threading
+    from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +44,8 @@ class ReplayVerifier(Subscriber):
     def __init__(self, recorded: dict[str, SampleBatch], check_host_times: bool = True) -> None:
         self.recorded = recorded
         self.check_host = check_host_times
-        self.compared: dict[str, int] = {s: 0 for s in recorded}
-        self.mismatches: dict[str, int] = {s: 0 for s in recorded}
+        self.compared: dict[str, int] = dict.fromkeys(recorded, 0)
+        self.mismatches: dict[str, int] = dict.fromkeys(recorded, 0)
         self.first_mismatch: dict[str, str] = {}
         self.unexpected: dict[str, int] = {}
         self._bits = {s: np.ascontiguousarray(b.values).view(np.int64) for s, b in recorded.items()}
@@ -51,7 +53,8 @@ class ReplayVerifier(Subscriber):
     def on_item(self, item: Any) -> None:
         rec = self.recorded.get(item.stream)
         if rec is None:
-            self.unexpected[item.stream] = self.unexpected.get(item.stream, 0) + (1 if type(item) is Sample else len(item))
+            n = 1 if type(item) is Sample else len(item)
+            self.unexpected[item.stream] = self.unexpected.get(item.stream, 0) + n
             return
         if type(item) is Sample:
             item = SampleBatch.from_samples(item.stream, [item], rec.values.shape[1] if rec.values.ndim == 2 else 0)
@@ -253,7 +256,7 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
         from capture.calibration_store import parse_calibration_document
 
         first = next(iter(recorded_orient.values()), None)
-        flt = orientation_filter or (first.extra.get("filter") if first and first.extra else None) or "fusion"
+        flt = orientation_filter or (str(first.extra.get("filter") or "") if first else "") or "fusion"
         auto = bool(first.extra.get("auto_bias", False)) if first and first.extra else True
         cals = {}
         for name, rec in reader.devices.items():

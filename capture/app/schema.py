@@ -9,16 +9,18 @@ every value, from text (flags, environment) or from a file, goes through one par
 
 from __future__ import annotations
 
-import argparse
-from collections.abc import Iterator, Mapping
 from dataclasses import Field, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capture.errors import ConfigError
 from devices.options import Option
 
+if TYPE_CHECKING:
+    import argparse
+    from collections.abc import Iterator, Mapping
 
-def setting(default: Any, help: str, *, min: float | None = None, max: float | None = None,  # noqa: A002
+
+def setting(default: Any, help: str, *, min: float | None = None, max: float | None = None,  # noqa: A002 - Option's
             choices: tuple[str, ...] | None = None, flag: str | None = None, metavar: str | None = None,
             repeat: bool = False) -> Any:
     """A settings field: its ``Option`` (type from the default) and how its flag is spelled.

@@ -77,7 +77,7 @@ class OrientationProcessor(Subscriber):
 
     accepts = SAMPLES
 
-    def __init__(self, inputs: list[StreamInfo], filter: str = DEFAULT_FILTER,  # noqa: A002  (its public name)
+    def __init__(self, inputs: list[StreamInfo], filter: str = DEFAULT_FILTER,  # noqa: A002 - public keyword
                  calibrations: Mapping[str, ImuCalibration] | None = None, *, auto_bias: bool = False,
                  auto_bias_confidence: float = 0.9, **settings: Any) -> None:
         self.filter_kind = filter

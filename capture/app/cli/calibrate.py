@@ -56,8 +56,10 @@ def run(args: argparse.Namespace) -> int:
             return 0
         out(f"calibrations in {store.dir}:" + ("" if entries else " none"))
         for p, d, e in entries:
-            out(f"  {p.name}: " + (f"DAMAGED: {e}" if e else f"{d['identity']['kind']} {d['identity']['name']}"
-                                   f" ({d.get('note') or 'no note'})"))
+            if d is None:
+                out(f"  {p.name}: DAMAGED: {e}")
+            else:
+                out(f"  {p.name}: {d['identity']['kind']} {d['identity']['name']} ({d.get('note') or 'no note'})")
         return 0
     if not args.device:
         raise ConfigError("give the device to calibrate with -d DEVICE (or --list)")

@@ -8,8 +8,15 @@ import tempfile
 from typing import TYPE_CHECKING
 
 from capture import __version__
-from capture.app.cli.common import EXIT_CHECK_FAILED, check_duration, live_line, out, print_capture, \
-    seconds_since, stop_on_signals
+from capture.app.cli.common import (
+    EXIT_CHECK_FAILED,
+    check_duration,
+    live_line,
+    out,
+    print_capture,
+    seconds_since,
+    stop_on_signals,
+)
 from capture.clock import MONOTONIC
 
 if TYPE_CHECKING:
@@ -80,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     reader = SessionReader(path)
     s = summarize(reader)
     accuracy = demo.bus_time_accuracy(cap, reader, phone)
-    out(f"\nsession {path}: {s['size_bytes'] / 1024:.0f} KiB for {(s['raw_bytes'] or 0) / 1024:.0f} KiB of raw device bytes")
+    out(f"\nsession {path}: {s['size_bytes'] / 1024:.0f} KiB for {(s['raw_bytes'] or 0) / 1024:.0f} KiB of raw"
+        " device bytes")
     for line in demo.stream_lines(s, accuracy, phone, serial):
         out(line)
     rep = replay_session(path, speed=0)

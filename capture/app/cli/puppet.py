@@ -6,8 +6,16 @@ from __future__ import annotations
 import sys
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, check_duration, check_writable, err, \
-    live_line, out, stop_on_signals
+from capture.app.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_CHECK_FAILED,
+    check_duration,
+    check_writable,
+    err,
+    live_line,
+    out,
+    stop_on_signals,
+)
 from capture.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -92,9 +100,9 @@ def run(args: argparse.Namespace) -> int:
     run = PuppetRun(retargeter, rate=rate, vmc=vmc, keep_frames=bool(args.output))
     code = 0
     try:
-        if track is None:
+        if spec is not None:                # --phone (else --input or --session gave the track)
             source, code, notes = _live(args, spec, run)
-        else:
+        elif track is not None:
             source = track.source
             for inp in track.resample(rate):
                 try:

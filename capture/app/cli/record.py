@@ -5,8 +5,15 @@ from __future__ import annotations
 import sys
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import check_duration, err, live_line, orientation_args, print_capture, settings, \
-    stop_on_signals
+from capture.app.cli.common import (
+    check_duration,
+    err,
+    live_line,
+    orientation_args,
+    print_capture,
+    settings,
+    stop_on_signals,
+)
 from capture.errors import ConfigError
 
 if TYPE_CHECKING:

@@ -6,8 +6,16 @@ import json
 import math
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import EXIT_CHECK_FAILED, check_duration, err, live_line, orientation_args, out, \
-    seconds_since, stop_on_signals
+from capture.app.cli.common import (
+    EXIT_CHECK_FAILED,
+    check_duration,
+    err,
+    live_line,
+    orientation_args,
+    out,
+    seconds_since,
+    stop_on_signals,
+)
 from capture.clock import MONOTONIC
 from capture.errors import ConfigError
 
@@ -41,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     speed = 0.0 if args.fast else args.speed
     if speed is None:
         speed = 1.0
-    if not math.isfinite(speed) or speed <= 0 and not args.fast:
+    if not math.isfinite(speed) or (speed <= 0 and not args.fast):
         raise ConfigError(f"--speed must be a positive factor (use --fast for as fast as possible), not {speed}")
     if args.duration is not None:
         check_duration(args.duration)
@@ -74,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
             unver = [s for s, v in ver["streams"].items() if v.get("unverifiable")]
             if unver:
                 out(f"  not verified (their recorded blocks are damaged): {', '.join(unver)}")
-            if ver["equal"] or rep.stopped_early and not any(v["mismatches"] for v in ver["streams"].values()):
+            if ver["equal"] or (rep.stopped_early and not any(v["mismatches"] for v in ver["streams"].values())):
                 n = sum(v["compared"] for v in ver["streams"].values())
                 out(f"verified: all {n} replayed samples equal the recorded ones")
             else:

@@ -51,7 +51,7 @@ def _print_qr(url: str) -> None:
         q.add_data(url)
         q.make(fit=True)
         q.print_ascii(out=sys.stdout, tty=False, invert=True)
-    except Exception as exc:  # noqa: BLE001 - the URL is printed as text anyway
+    except Exception as exc:
         log.info("no QR code: %s", exc)
 
 
@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
         out(f"perfcap {__version__} serve")
         out(f"  phone page      {ep.page_url}   (open on the phone; same Wi-Fi)")
         out(f"  pairing link    {ep.pair_url}")
-        out(f"  pairing token   {svc.tokens.token}   (shown once; rotate with --rotate-token or POST /api/token/rotate)")
+        out(f"  pairing token   {svc.tokens.token}   (shown once; rotate with --rotate-token or"
+            " POST /api/token/rotate)")
         if ep.fingerprint:
             out(f"  TLS certificate SHA-256 {ep.fingerprint}")
             out("                  (self-signed: the phone warns once; check that it shows this fingerprint)")
@@ -108,10 +109,12 @@ def run(args: argparse.Namespace) -> int:
 
     async def main_async() -> Any:
         loop = asyncio.get_running_loop()
+        def on_signal(sig: signal.Signals) -> None:
+            print(f"\nperfcap: {sig.name} received, stopping and flushing", file=sys.stderr)
+            service.request_stop()
+
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, lambda sig=sig: (
-                print(f"\nperfcap: {signal.Signals(sig).name} received, stopping and flushing", file=sys.stderr),
-                service.request_stop()))
+            loop.add_signal_handler(sig, on_signal, sig)
         if args.duration:
             loop.call_later(args.duration, service.request_stop)
 

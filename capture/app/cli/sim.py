@@ -4,13 +4,14 @@ the network), from the ``perfcap.sims`` entry points, so perfcap itself never im
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Sequence
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, cast
 
 from capture.errors import ConfigError
 
 if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
     from capture.app.cli.common import Subcommands
 
 SIMS_GROUP = "perfcap.sims"

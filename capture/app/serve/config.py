@@ -39,15 +39,13 @@ class Limits:
     ping_s: float = 1.0
 
 
-PORT = {"min": 0, "max": 65535}
-
 
 @dataclass
 class ServeConfig:
     """Everything ``perfcap serve`` listens on and how."""
 
     host: str = setting("0.0.0.0", "address the phone endpoints listen on (default all)")
-    port: int = setting(8443, "phone page / WebSocket / Sensor Logger port (HTTPS)", **PORT)
+    port: int = setting(8443, "phone page / WebSocket / Sensor Logger port (HTTPS)", min=0, max=65535)
     public_host: str = setting("", "address phones use to reach this machine (default: detected LAN address)")
     tls: bool = setting(True, "plain HTTP (browsers then refuse motion sensors)")
     control_host: str = setting("127.0.0.1", "control API address (default loopback only)")
@@ -58,11 +56,11 @@ class ServeConfig:
     mdns_interfaces: str = setting("all", "interfaces mDNS uses: all, or comma-separated interface addresses")
     connect_sensorserver: bool = setting(False, "connect to SensorServer phones found by mDNS without asking")
     sensorserver_types: str = setting("accelerometer,gyroscope", "the sensors asked of SensorServer phones")
-    osc_port: int = setting(0, "OSC UDP port (ZIG SIM, GyrOSC); off by default", **PORT)
+    osc_port: int = setting(0, "OSC UDP port (ZIG SIM, GyrOSC); off by default", min=0, max=65535)
     osc_allow: str = setting("", "addresses allowed to send OSC (needed with --osc-port)")
     osc_map: str = setting("zigsim", "OSC address map: zigsim, gyrosc or a custom map")
-    hyperimu_port: int = setting(0, "HyperIMU UDP port; off by default", **PORT)
-    hyperimu_tcp_port: int = setting(0, "HyperIMU TCP port; off by default", **PORT)
+    hyperimu_port: int = setting(0, "HyperIMU UDP port; off by default", min=0, max=65535)
+    hyperimu_tcp_port: int = setting(0, "HyperIMU TCP port; off by default", min=0, max=65535)
     hyperimu_allow: str = setting("", "addresses allowed to send HyperIMU CSV")
     hyperimu_sensors: str = setting("accelerometer,gyroscope,magnetometer",
                                     "HyperIMU's enabled sensors, in the app's order")

@@ -29,6 +29,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+JSON = "application/json"
+
 _HOST_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.\-:]{0,252}$")
 _TYPES_RE = re.compile(r"^[A-Za-z0-9_.]+(,[A-Za-z0-9_.]+)*$")
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
@@ -63,9 +65,9 @@ def control_app(service: Service) -> web.Application:
         try:
             data = json.loads(await request.read() or b"{}")
         except ValueError:
-            raise web.HTTPBadRequest(text='{"error": "the body must be JSON"}', content_type="application/json")
+            raise web.HTTPBadRequest(text='{"error": "the body must be JSON"}', content_type=JSON) from None
         if not isinstance(data, dict):
-            raise web.HTTPBadRequest(text='{"error": "the body must be a JSON object"}', content_type="application/json")
+            raise web.HTTPBadRequest(text='{"error": "the body must be a JSON object"}', content_type=JSON)
         return data
 
     async def health(request: web.Request) -> web.Response:
@@ -99,7 +101,8 @@ def control_app(service: Service) -> web.Application:
         host, port, types, name = b.get("host"), b.get("port"), b.get("types"), b.get("name")
         if (not isinstance(host, str) or not _HOST_RE.match(host) or type(port) is not int
                 or not 0 < port < 65536):
-            raise ConfigError('expected {"host": "192.168.1.40", "port": 8080} (a host name or address, a port 1-65535)')
+            raise ConfigError('expected {"host": "192.168.1.40", "port": 8080}'
+                              ' (a host name or address, a port 1-65535)')
         if types is not None and (not isinstance(types, str) or not _TYPES_RE.match(types)):
             raise ConfigError('types must be sensor type names separated by commas, e.g. "accelerometer,gyroscope"')
         if name is not None and (not isinstance(name, str) or not _NAME_RE.match(name)):

@@ -14,9 +14,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +103,7 @@ class Discovery:
             if self.browse:
                 self._browser = AsyncServiceBrowser(self._azc.zeroconf, [SENSORSERVER_TYPE],
                                                     handlers=[self._on_change])
-        except Exception as exc:  # noqa: BLE001 - discovery is optional; the service must still run
+        except Exception as exc:
             self.error = f"{type(exc).__name__}: {exc}"
             log.warning("mDNS discovery is off: %s (phones can still connect with the printed URL)", self.error)
             await self.stop()
@@ -124,7 +126,7 @@ class Discovery:
         info = AsyncServiceInfo(service_type, name)
         try:
             ok = await info.async_request(self._azc.zeroconf, 3000)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             log.info("mDNS: cannot resolve %s: %s", name, exc)
             return
         if not ok or not info.port:

@@ -22,15 +22,17 @@ import logging
 import re
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from capture.clock import MONOTONIC, Clock
-from capture.sample import Chunk, Direction
 from capture.app.serve.config import Limits
 from capture.app.serve.security import AllowList, RateLimit, Rejections, TokenStore
-from devices.transports.network import Inbox
+from capture.clock import MONOTONIC, Clock
+from capture.sample import Chunk, Direction
+
+if TYPE_CHECKING:
+    from devices.transports.network import Inbox
 
 log = logging.getLogger(__name__)
 

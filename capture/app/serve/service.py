@@ -20,24 +20,27 @@ import os
 import re
 import socket
 import threading
-from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
 from capture import __version__
-from capture.clock import MONOTONIC, Clock
-from capture.errors import CaptureError, ConfigError
-from capture.app.orchestrator import Capture
+from capture.app.orchestrator import DEFAULT_RECONNECT, Capture
 from capture.app.serve.discovery import Discovery, FoundService
-from capture.app.serve.config import ServeConfig
 from capture.app.serve.gateway import CLOSE_TOKEN, Gateway
 from capture.app.serve.security import AllowList, TokenStore
 from capture.app.serve.tls import Certificate, ensure_certificate
+from capture.clock import MONOTONIC, Clock
+from capture.errors import CaptureError, ConfigError
 from devices import DeviceSpec, ReconnectPolicy
 from devices.transports.network import Inbox, drop_hub, hub
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping, Sequence
+
+    from capture.app.serve.config import ServeConfig
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +169,7 @@ class Service:
     """
 
     def __init__(self, config: ServeConfig, devices: Sequence[DeviceSpec | str] = (), *,
-                 reconnect: ReconnectPolicy = ReconnectPolicy(), clock: Clock = MONOTONIC,
+                 reconnect: ReconnectPolicy = DEFAULT_RECONNECT, clock: Clock = MONOTONIC,
                  capture_options: Mapping[str, Any] | None = None) -> None:
         config.check()
         self.config = config
@@ -266,7 +269,8 @@ class Service:
                 "connected": None if box is None else box.connected, "peer": self.phones.peers.get(d.name),
                 "rate_hz": max((s["rate_hz"] for s in streams.values()), default=0.0),
                 "samples": sum(s["samples"] for s in streams.values()),
-                "drops": {"lost_readings": h.get("lost_readings", 0), "stream_gaps": sum(s["drops"] for s in streams.values()),
+                "drops": {"lost_readings": h.get("lost_readings", 0),
+                          "stream_gaps": sum(s["drops"] for s in streams.values()),
                           "protocol_errors": h.get("checksum_errors", 0) + h.get("framing_errors", 0),
                           "queue_refused": 0 if box is None else box.dropped},
                 "clock": clocks,
@@ -506,7 +510,7 @@ class ServiceThread:
 
         try:
             asyncio.run(body())
-        except BaseException as exc:  # noqa: BLE001 - handed to the starting thread
+        except BaseException as exc:
             self.error = exc
             self._ready.set()
 

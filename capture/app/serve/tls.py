@@ -50,7 +50,7 @@ def _names_of(cert: object) -> set[str]:
     from cryptography import x509
 
     try:
-        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value  # type: ignore[attr-defined]
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value  # type: ignore[attr-defined]  # cryptography types .value as the ExtensionType base
     except x509.ExtensionNotFound:
         return set()
     return {str(n) for n in san.get_values_for_type(x509.DNSName)} | {
