@@ -243,3 +243,46 @@ def test_quaternion_maths_lives_in_one_place():
             continue
         defs = {n.name for n in ast.walk(m.tree) if isinstance(n, ast.FunctionDef)}
         assert not defs & {"quat_mul", "qmul", "_qmul", "quat_slerp", "qslerp", "quat_rotate"}, m.rel
+
+
+# -- docs/architecture.md stays true ----------------------------------------------------------------------
+ARCHITECTURE = ROOT / "docs" / "architecture.md"
+
+
+def named_paths(text: str) -> list[str]:
+    """Every module or package path docs/architecture.md names: whole paths (``capture/app/cli/``), and
+    in a table row the bare file names after the row's first path (``fusion.py`` of ``capture/orientation/``)."""
+    import re
+
+    out = []
+    for line in text.splitlines():
+        base: str | None = None
+        for tok in re.findall(r"`([^`\s]+)`", line):
+            if tok.split("/")[0] in PACKAGES and (tok.endswith((".py", "/"))):
+                out.append(tok)
+                if line.startswith("|") and base is None:
+                    base = tok if tok.endswith("/") else tok.rsplit("/", 1)[0] + "/"
+            elif line.startswith("|") and base is not None and re.fullmatch(r"[a-z_0-9]+\.py", tok):
+                out.append(base + tok)
+    return out
+
+
+def test_the_architecture_page_names_only_what_exists():
+    text = ARCHITECTURE.read_text(encoding="utf-8")
+    names = named_paths(text)
+    assert len(names) > 50
+    missing = [n for n in names if not (ROOT / n).exists()]
+    assert not missing, f"docs/architecture.md names what does not exist: {missing}"
+
+
+def test_the_architecture_page_names_every_package():
+    named = {n.rstrip("/") for n in named_paths(ARCHITECTURE.read_text(encoding="utf-8"))}
+    packages = {p.parent.relative_to(ROOT).as_posix() for pkg in PACKAGES for p in (ROOT / pkg).rglob("__init__.py")}
+    assert packages <= named, f"docs/architecture.md does not name {sorted(packages - named)}"
+
+
+def test_named_paths_resolves_bare_names_in_a_row():
+    row = "| `capture/orientation/` | the filter (`filter.py`) and `nothere.py` |"
+    assert named_paths(row) == ["capture/orientation/", "capture/orientation/filter.py",
+                                "capture/orientation/nothere.py"]
+
