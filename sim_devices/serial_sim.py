@@ -34,15 +34,17 @@ import sys
 import tempfile
 import threading
 import tty
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import CaptureError, ConfigError
 from sim_devices.frames import ENCODERS, FrameSource, SessionSource, WavingSource
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -260,7 +262,7 @@ class PtySerialDevice:
     def _run(self) -> None:
         try:
             self._stream()
-        except BaseException as exc:  # noqa: BLE001 - reported to the owner, never a silent death
+        except BaseException as exc:  # reported to the owner, never a silent death
             self.error = exc
             log.error("simulated serial device at %s stopped: %s", self.path, exc)
         finally:
@@ -303,7 +305,7 @@ class PtySerialDevice:
             first_pending = now
 
         for times, pieces in self.source.blocks():
-            for t, piece in zip(times.tolist(), pieces):
+            for t, piece in zip(times.tolist(), pieces, strict=True):  # one byte string per reading
                 due = t0 + shift + int(t * inv_speed * 1e9)
                 while True:  # wait for the reading's time, serving commands, bursts and the schedule
                     if self._stop.is_set():
@@ -357,24 +359,25 @@ class PtySerialDevice:
                     self.stats.lost_unplugged += 1
                     idx += 1
                     continue
+                out = piece  # what goes on the wire: the reading, after the faults
                 if self.garbage and self.rng.random() < self.garbage:
                     g = self.rng.integers(0, 256, int(self.rng.integers(1, 12)), np.uint8).tobytes()
                     self.stats.garbage_bytes += len(g)
-                    piece = g + piece
+                    out = g + out
                 if drop:
-                    k = min(drop, len(piece))
-                    piece = piece[k:]
+                    k = min(drop, len(out))
+                    out = out[k:]
                     drop -= k
                     self.stats.dropped_bytes += k
                 now = clock.now_ns()
                 if self.burst_ns:
                     if not pending:
                         first_pending = now
-                    pending += piece
+                    pending += out
                     pending_ends.append((idx, len(pending)))
                     if len(pending) >= self.burst_bytes:
                         flush(now, False)
-                elif self._write(piece):
+                elif self._write(out):
                     self.sent.append((idx, clock.now_ns()))
                     self.stats.readings_sent += 1
                 else:
@@ -448,6 +451,9 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"#   perfcap record -d '{sim.device_url()}' -o take.mcap\n"
           f"# commands on stdin: {COMMANDS}", file=sys.stderr, flush=True)
     stop = threading.Event()
+    with_arg: dict[str, Callable[[float], None]] = {
+        "garbage": lambda n: sim.inject_garbage(int(n)), "drop": lambda n: sim.drop_bytes(int(n)),
+        "stall": sim.stall, "burst": sim.set_burst}
 
     def commands() -> None:
         for line in sys.stdin:
@@ -464,9 +470,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     sim.unplug()
                 elif cmd == "replug":
                     sim.replug()
-                elif cmd in ("garbage", "drop", "stall", "burst") and arg is not None and arg >= 0:
-                    {"garbage": lambda: sim.inject_garbage(int(arg)), "drop": lambda: sim.drop_bytes(int(arg)),
-                     "stall": lambda: sim.stall(arg), "burst": lambda: sim.set_burst(arg)}[cmd]()
+                elif cmd in with_arg and arg is not None and arg >= 0:
+                    with_arg[cmd](arg)
                 else:
                     raise ValueError
                 print(f"# {line.strip()}: ok", file=sys.stderr, flush=True)
