@@ -24,12 +24,16 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capture.clock import MONOTONIC, Clock
 from sim_devices.motion import PHONE_MOTIONS, phone_motion
 from sim_devices.phone_sim import page_hello, page_messages, page_pong
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from sim_devices.phone_sim import PageMessage
 
 log = logging.getLogger(__name__)
 
@@ -61,12 +65,18 @@ class SimPagePhone:
         drop_at_s: close the socket this many seconds in (a Wi-Fi drop); the page reconnects after
             ``drop_for_s`` and resends what it queued meanwhile, as the real page does.
         clock: host clock (for ``truth_ns``).
+        local_addr: the source address its connections bind to, so that several simulated phones
+            on one machine look like separate hosts (127.0.0.10, .11, ... on loopback); None: the
+            system's choice.
+
+    ``messages`` holds the page messages of the current run (what it sends, in order, with each
+    one's page send time), once ``run()`` has started.
     """
 
     def __init__(self, url: str, token: str | None, phone_id: str = "sim-phone", *, rate_hz: float = 60.0,
                  duration_s: float | None = 10.0, seed: int = 1, fingerprint: str | None = None,
                  drop_at_s: float | None = None, drop_for_s: float = 0.5, batch_s: float = 0.05,
-                 clock: Clock = MONOTONIC, motion: str = "waving") -> None:
+                 clock: Clock = MONOTONIC, motion: str = "waving", local_addr: str | None = None) -> None:
         phone_motion(motion)                           # an unknown motion fails here, not in the loop
         self.url = url
         self.token = token
@@ -80,6 +90,8 @@ class SimPagePhone:
         self.batch_s = batch_s
         self.clock = clock
         self.motion = motion
+        self.local_addr = local_addr
+        self.messages: list[PageMessage] = []
         self.sent = 0
         self.events = 0
         self.pongs = 0
@@ -140,7 +152,8 @@ class SimPagePhone:
         msgs = page_messages(total, self.rate_hz, batch_s=self.batch_s, seed=self.seed, t0_ms=self.t0_ms,
                              motion=self.motion)
         self.messages = msgs
-        async with aiohttp.ClientSession() as session:
+        connector = None if self.local_addr is None else aiohttp.TCPConnector(local_addr=(self.local_addr, 0))
+        async with aiohttp.ClientSession(connector=connector) as session:
             ws = await self._connect(session)
             if ws is None:
                 return
@@ -209,7 +222,7 @@ class PhoneThread:
     def _main(self) -> None:
         try:
             asyncio.run(self.phone.run())
-        except BaseException as exc:  # noqa: BLE001 - reported by join()
+        except BaseException as exc:  # reported by join()
             self.phone.error = exc
             log.warning("simulated phone %s stopped: %s: %s", self.phone.phone_id, type(exc).__name__, exc)
 
@@ -297,7 +310,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         asyncio.run(go())
     except KeyboardInterrupt:
         return 130
-    except Exception as exc:  # noqa: BLE001 - one line for the user
+    except Exception as exc:  # one line for the user
         print(f"perfcap sim phone: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
     if phone.close_code and phone.device is None:
