@@ -20,6 +20,7 @@ item types they accept, and items nobody accepts cost one type check per subscri
 
 from __future__ import annotations
 
+import abc
 import enum
 import logging
 import queue
@@ -41,6 +42,8 @@ from capture.sample import (
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable
+
+    from capture.sample import StreamInfo
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +92,20 @@ class Subscriber:
 
     def stop(self) -> None:
         """Called once on the delivery thread after the last item."""
+
+
+class Processor(Subscriber, abc.ABC):
+    """A subscriber that publishes derived streams back onto the bus (orientation from IMU samples, the
+    puppet's pose from a phone). It declares its streams before data flows, so the recorder knows them,
+    and is handed the bus's publish function."""
+
+    @abc.abstractmethod
+    def output_streams(self) -> list[StreamInfo]:
+        """The streams this processor publishes."""
+
+    @abc.abstractmethod
+    def bind(self, publish: Callable[[Any], None]) -> None:
+        """Where to publish what it derives (``SampleBus.publish``)."""
 
 
 def item_size(item: Any) -> int:

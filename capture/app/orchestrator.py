@@ -10,7 +10,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from capture.bus import Overflow, SampleBus, Subscriber
+from capture.bus import Overflow, Processor, SampleBus, Subscriber, Subscription
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
 from capture.recorder import SessionRecorder
@@ -20,6 +20,10 @@ from devices import Device, DeviceReader, DeviceSpec, ReconnectPolicy, open_devi
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
+
+    from capture.calibration import ImuCalibration
+    from capture.calibration_store import CalibrationStore
+    from capture.orientation import OrientationProcessor
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +117,7 @@ CALIBRATION_KEY = "calibration.json"
 
 
 def build_orientation(devices: Sequence[Device], filter: str, auto_bias: bool,  # noqa: A002 - as the CLI's --filter
-                      calibrations: Mapping[str, Any]) -> Any:
+                      calibrations: Mapping[str, ImuCalibration]) -> OrientationProcessor | None:
     """An ``OrientationProcessor`` over every IMU stream of ``devices`` (with each device's
     magnetometer where its units allow), or None when no device has an IMU stream."""
     from capture.orientation import OrientationProcessor, check_mag_stream
@@ -189,8 +193,8 @@ class Capture:
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
                                    wall_time_s=clock.wall_time_s())
         self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
-        self.processors: list[Any] = []
-        self.orientation: Any = None
+        self.processors: list[Processor] = []
+        self.orientation: OrientationProcessor | None = None
         try:
             self.stats = StreamStats()
             self.bus.subscribe(self.stats, policy=Overflow.KEEP_NEWEST, name="stats")
@@ -292,10 +296,11 @@ class Capture:
         return {"output": out, "samples": dict(rec.counts),
                 "error": None if rec.failed is None else str(rec.failed)}
 
-    def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST, name: str | None = None) -> Any:
+    def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST,
+                  name: str | None = None) -> Subscription:
         return self.bus.subscribe(sub, policy=policy, name=name)
 
-    def add_processor(self, proc: Any, name: str | None = None) -> Any:
+    def add_processor(self, proc: Processor, name: str | None = None) -> Subscription:
         """Attach a processor: a subscriber that publishes derived streams (``output_streams()``,
         declared to the recorder now) back onto the bus through ``bind(publish)``. It never drops
         input, and it is drained before the recorder when the capture stops.
@@ -318,7 +323,8 @@ class Capture:
         return self.bus.subscribe(proc, policy=Overflow.NEVER_DROP, name=name or type(proc).__name__)
 
     def enable_orientation(self, filter: str = "fusion", auto_bias: bool = True,  # noqa: A002 - as --filter
-                           calibrations: Mapping[str, Any] | None = None, store: Any = None) -> Any:
+                           calibrations: Mapping[str, ImuCalibration] | None = None,
+                           store: CalibrationStore | None = None) -> OrientationProcessor | None:
         """Orientation fusion on every IMU stream (see ``capture.orientation``), with each device's
         calibration: from ``calibrations`` (by device name), else from ``store`` (a
         ``CalibrationStore``, by device identity). The calibration used is recorded with the device,
@@ -329,7 +335,7 @@ class Capture:
         """
         from capture.calibration_store import calibration_document
 
-        cals: dict[str, Any] = dict(calibrations or {})
+        cals: dict[str, ImuCalibration] = dict(calibrations or {})
         for d in self.devices:
             if d.name not in cals and store is not None and any(s.kind == "imu" for s in d.streams):
                 cal = store.load(d.identity)

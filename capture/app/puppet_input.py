@@ -24,7 +24,7 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from capture.sample import StreamInfo
+    from capture.session import SessionReader
 
 __all__ = [
     "ATTITUDE_STREAMS",
@@ -366,7 +367,7 @@ def unknown_touch_phases(values: np.ndarray, channels: Sequence[str] = ("phase",
     return int((~np.isin(phase, (0.0, 1.0, 2.0, 3.0))).sum())
 
 
-def _phone_device(reader: Any, device: str | None) -> tuple[str, StreamInfo]:
+def _phone_device(reader: SessionReader, device: str | None) -> tuple[str, StreamInfo]:
     streams: dict[str, StreamInfo] = reader.streams
     found: dict[str, StreamInfo] = {}
     for name, info in streams.items():
@@ -390,7 +391,7 @@ def _phone_device(reader: Any, device: str | None) -> tuple[str, StreamInfo]:
     return dev, found[dev]
 
 
-def session_track(reader: Any, device: str | None = None) -> PhoneTrack:
+def session_track(reader: SessionReader, device: str | None = None) -> PhoneTrack:
     """A recorded phone's motion: its attitude stream for orientation (no position: the retargeter holds
     it at a pivot) and its touch stream for the grab; times in seconds from the first attitude sample.
 

@@ -33,7 +33,7 @@ from capture.app.puppet_input import (
     check_rate,
     touch_columns,
 )
-from capture.bus import Subscriber
+from capture.bus import Processor
 from capture.errors import ConfigError
 from capture.quat import quat_conj, quat_mul, quat_rotate, quat_slerp
 from capture.sample import Sample, SampleBatch, StreamInfo
@@ -43,7 +43,7 @@ from retarget.timeline import split_heading, yaw_quat
 from retarget.vmc import VmcEncoder
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Sequence
+    from collections.abc import Callable, Iterable, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +300,7 @@ class PuppetRun:
 
 
 # ------------------------------------------------------------------------------------------------ live
-class PuppetFollower(Subscriber):
+class PuppetFollower(Processor):
     """Drives a :class:`PuppetRun` from a phone's live samples on the bus, and puts the poses back on it.
 
     Frames are stepped on a fixed-rate grid of bus time starting at the first attitude sample: each
@@ -350,14 +350,14 @@ class PuppetFollower(Subscriber):
         channels = ("root.x", "root.y", "root.z", *(f"{j}.{c}" for j in sk.names for c in "wxyz"))
         self.pose = StreamInfo(f"{device}/puppet", "pose", channels, ("m",) * 3 + ("1",) * (4 * sk.n_joints),
                                run.rate, attitude.device)
-        self._publish: Any = None
+        self._publish: Callable[[Any], None] | None = None
         self.published = 0
 
     def output_streams(self) -> list[StreamInfo]:
         """The pose stream this follower publishes once bound (see the class)."""
         return [self.pose]
 
-    def bind(self, publish: Any) -> None:
+    def bind(self, publish: Callable[[Any], None]) -> None:
         """Set the bus's publish callable (``Capture.add_processor`` does)."""
         self._publish = publish
         self.publishes = True          # drained before the other subscribers when the bus closes

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from capture.bus import SAMPLES, Subscriber
+from capture.bus import SAMPLES, Processor
 from capture.calibration import G0, GyroBiasEstimator, ImuCalibration
 from capture.errors import ConfigError
 from capture.orientation.filter import DEFAULT_FILTER, OrientationFilter
@@ -48,7 +48,7 @@ def _prefix(name: str) -> str:
     return name.rsplit("/", 1)[0] if "/" in name else name
 
 
-class OrientationProcessor(Subscriber):
+class OrientationProcessor(Processor):
     """Bus subscriber: orientation, gravity and linear acceleration for one or more IMU streams.
 
     For every IMU input ``<dev>/imu`` it publishes ``<dev>/orientation`` (kind ``orientation``,
