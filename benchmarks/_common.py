@@ -60,10 +60,11 @@ def code_version() -> str:
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
+        # check=False: outside a git checkout (or without git) the version is reported as unknown
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
-                             timeout=10).stdout.strip()
+                             timeout=10, check=False).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.split("\n")
+                               capture_output=True, text=True, timeout=10, check=False).stdout.split("\n")
         changed = [ln[3:] for ln in dirty if ln.strip()]
     except (OSError, subprocess.SubprocessError):
         return "unknown (no git)"
@@ -104,7 +105,7 @@ def load_streams() -> list[tuple[str, float]]:
 
 
 def stream_info(name: str, rate: float) -> StreamInfo:
-    dev = name.split("/")[0]
+    dev = name.split("/", maxsplit=1)[0]
     return StreamInfo(name, "imu", IMU_CHANNELS, IMU_UNITS, rate, DeviceIdentity(kind="bench", name=dev))
 
 
@@ -166,7 +167,7 @@ def run_sample_load(path: str | None, duration_s: float = 10.0, spin_ns: int | N
     ``queue.SimpleQueue`` read by one thread that measures the latency (no bus, no recorder)."""
     streams = load_streams()
     base = path is None
-    if base:
+    if path is None:
         bq = _BareQueue()
     else:
         bus = SampleBus()
@@ -224,7 +225,7 @@ def run_sample_load(path: str | None, duration_s: float = 10.0, spin_ns: int | N
     w1 = time.monotonic()
     published = sum(counts)
     expected = sum(int(duration_s * r) for _, r in streams)
-    if base:
+    if path is None:
         bq.close()
         return LoadResult(
             duration_s=w1 - w0, published=published, expected=expected,

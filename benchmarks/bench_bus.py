@@ -20,8 +20,8 @@ import time  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from _common import check, header, pct, run_sample_load, summary  # noqa: E402
+
 from capture.bus import Overflow, SampleBus, Subscriber  # noqa: E402
 from capture.sample import NO_TIME, Sample, SampleBatch  # noqa: E402
 
@@ -159,11 +159,11 @@ def main() -> None:
     print(f"2.  5 kHz live load for {LOAD_S:.0f} s: 17 threads x 250 Hz + 1 x 1000 Hz, Sample by Sample,"
           " MonotonicClock().sleep_until_ns pacing;")
     print("    subscribers: latency probe (KEEP_NEWEST) + SessionRecorder to a temp .mcap (NEVER_DROP)")
-    base = run_sample_load(None, LOAD_S)
-    b50, b99, b999, bmax = pct(base.lat_ms, 50, 99, 99.9, 100)
-    print(f"    baseline (same 18 paced threads -> one bare queue.SimpleQueue -> 1 consumer thread, no recorder):")
+    bare = run_sample_load(None, LOAD_S)
+    b50, b99, b999, bmax = pct(bare.lat_ms, 50, 99, 99.9, 100)
+    print("    baseline (same 18 paced threads -> one bare queue.SimpleQueue -> 1 consumer thread, no recorder):")
     print(f"      latency (ms): p50 {b50:.3f}  p99 {b99:.3f}  p99.9 {b999:.3f}  max {bmax:.3f}"
-          f"  (n={base.lat_ms.size}); process CPU {base.cpu_frac * 100:.0f}% of one core")
+          f"  (n={bare.lat_ms.size}); process CPU {bare.cpu_frac * 100:.0f}% of one core")
     with tempfile.TemporaryDirectory(prefix="perfcap-bench-") as tmp:
         res = run_sample_load(os.path.join(tmp, "load.mcap"), LOAD_S)
     p50, p99, p999, pmax = pct(res.lat_ms, 50, 99, 99.9, 100)
@@ -177,14 +177,14 @@ def main() -> None:
     print(f"      recorder: dropped {res.rec_dropped}, max queue {res.rec_max_pending} items"
           f" ({res.rec_max_pending_bytes / 1e3:.0f} kB), file {res.file_bytes / 1e3:.0f} kB,"
           f" drain+close {res.close_s * 1e3:.0f} ms, failed={res.extra['recorder_failed']}")
-    print(f"      process CPU: {res.cpu_frac * 100:.0f}% of one core (of {os.cpu_count() * 100}%);"
-          f" baseline {base.cpu_frac * 100:.0f}%")
+    print(f"      process CPU: {res.cpu_frac * 100:.0f}% of one core (of {(os.cpu_count() or 1) * 100}%);"
+          f" baseline {bare.cpu_frac * 100:.0f}%")
     check("live latency p50", p50 <= 0.1, f"{p50:.3f} ms (target <= 0.1 ms; bare-queue baseline {b50:.3f})")
     check("live latency p99", p99 <= 0.5, f"{p99:.3f} ms (target <= 0.5 ms; bare-queue baseline {b99:.3f})")
     check("live latency p99.9", p999 <= 2.0, f"{p999:.3f} ms (target <= 2 ms; bare-queue baseline {b999:.3f})")
     check("recorder drops under 5 kHz load", res.rec_dropped == 0, f"{res.rec_dropped} (target 0)")
     print(f"   [info] process CPU {res.cpu_frac * 100:.0f}% of one core with the bus and recorder,"
-          f" {base.cpu_frac * 100:.0f}% for the paced publishers on a bare queue")
+          f" {bare.cpu_frac * 100:.0f}% for the paced publishers on a bare queue")
     summary()
 
 

@@ -187,7 +187,7 @@ def emission_order(r: Run) -> np.ndarray:
     """Sample indices in the order the devices emit them: by device time within each message
     (stable), as both phone devices sort their readings."""
     order = np.arange(r.ticks.size)
-    for a, b in zip(r.first[:-1].tolist(), r.first[1:].tolist()):
+    for a, b in zip(r.first[:-1].tolist(), r.first[1:].tolist(), strict=True):
         order[a:b] = a + np.argsort(r.ticks[a:b], kind="stable")
     return order
 
@@ -262,8 +262,8 @@ def section_page(seeds: list[int]) -> None:
     if not HAVE_PHONE:
         print(f"   devices.phone not importable ({_PHONE_ERR}): the PhonePage row is skipped")
     methods: list[tuple[str, Any]] = [
-        ("baseline: arrival time", lambda r: baseline_arrival(r)),
-        ("baseline: arrival - index x period", lambda r: baseline_index(r)),
+        ("baseline: arrival time", baseline_arrival),
+        ("baseline: arrival - index x period", baseline_index),
     ]
     page_name = "ClockSync defaults (direct)"
     if HAVE_PHONE:
@@ -287,15 +287,16 @@ def section_page(seeds: list[int]) -> None:
             buses[name] = [fn(r) for r in runs]
         if HAVE_PHONE:
             same = all(np.array_equal(a, direct(r, send=page_send, **page_opts)[0])
-                       for a, r in zip(buses[page_name], runs))
+                       for a, r in zip(buses[page_name], runs, strict=True))
             print(f"   {label}: PhonePage bus times identical to ClockSync called directly with the same "
                   f"options: {same}")
         results: dict[str, tuple[Stat, list[Stat]]] = {}
         for name, _ in methods:
-            per = [stat(b, r) for b, r in zip(buses[name], runs)]
+            per = [stat(b, r) for b, r in zip(buses[name], runs, strict=True)]
             # pooled over seeds
             t_all = np.concatenate([(r.true - T0) / 1e9 for r in runs])
-            e_all = np.concatenate([(b - r.true - r.base) / 1e6 for b, r in zip(buses[name], runs)])[t_all >= SKIP_S]
+            e_all = np.concatenate([(b - r.true - r.base) / 1e6
+                                    for b, r in zip(buses[name], runs, strict=True)])[t_all >= SKIP_S]
             p50, p99, pmax = pct(np.abs(e_all), 50, 99, 100)
             pooled = Stat(p50, p99, pmax, float(e_all.mean()), max(s.abs_p99 for s in per))
             results[name] = (pooled, per)
@@ -312,8 +313,8 @@ def section_page(seeds: list[int]) -> None:
             resets += cs.resets
             st = cs.state(int(r.arrival[-1]))
             drift_err.append(abs(st.drift_ppm - r.drift_ppm) if st is not None else float("nan"))
-        print(f"   {'':28s} {PROPOSED}: final drift error max {max(drift_err):.1f} ppm; clock resets {resets}; runs with bus"
-              f" times going back: {mono}; with a bus time after its arrival: {back}")
+        print(f"   {'':28s} {PROPOSED}: final drift error max {max(drift_err):.1f} ppm; clock resets {resets};"
+              f" runs with bus times going back: {mono}; with a bus time after its arrival: {back}")
         for name in (page_name, PROPOSED):
             per = results[name][1]
             worst = max(s.p99 for s in per)
@@ -338,8 +339,10 @@ def section_page(seeds: list[int]) -> None:
     print("   A page that sends from its devicemotion handler (the newest sample is fresh) instead of a timer:")
     for jit, label in JITTERS.items():
         runs = [page_run(s, jit, timer="handler") for s in seeds]
-        for name, kw in (("defaults", {}), ("window_s=60", {"window_s": 60.0}),
-                         ("send_ticks, window_s=60", {"send": True, "window_s": 60.0})):
+        handler_setups: list[tuple[str, dict[str, Any]]] = [
+            ("defaults", {}), ("window_s=60", {"window_s": 60.0}),
+            ("send_ticks, window_s=60", {"send": True, "window_s": 60.0})]
+        for name, kw in handler_setups:
             per = [stat(direct(r, **kw)[0], r) for r in runs]
             print(f"   {label:28s} ClockSync {name:26s} p99 per seed {min(s.p99 for s in per):.3f} to "
                   f"{max(s.p99 for s in per):.3f} ms, max {max(s.pmax for s in per):.3f} ms")
@@ -347,8 +350,8 @@ def section_page(seeds: list[int]) -> None:
 
 def section_stall(seeds: list[int]) -> None:
     print()
-    print(f"-- [info] a {STALL_S:.0f} s Wi-Fi stall at t = {STALL_AT_S:.0f} s: the page's messages of those seconds arrive"
-          " together when it ends (Wi-Fi jitter otherwise)")
+    print(f"-- [info] a {STALL_S:.0f} s Wi-Fi stall at t = {STALL_AT_S:.0f} s: the page's messages of those seconds"
+          " arrive together when it ends (Wi-Fi jitter otherwise)")
     t0, t1 = T0 + STALL_AT_S * 1e9, T0 + (STALL_AT_S + STALL_S) * 1e9
     runs = []
     for s in seeds:
@@ -407,8 +410,8 @@ def sensorlogger_device(r: Run, **cs_kw: Any) -> tuple[np.ndarray, int]:
     """Bus times of ``acc`` from the real SensorLoggerPhone (or, with ClockSync options, ClockSync
     called as the device calls it); and the clock resets."""
     if cs_kw or not HAVE_PHONE:
-        bus, cs = direct(r, spec=SENSORLOGGER_CLOCK, **cs_kw)
-        return bus, cs.resets
+        direct_bus, cs = direct(r, spec=SENSORLOGGER_CLOCK, **cs_kw)
+        return direct_bus, cs.resets
     dev = SensorLoggerPhone("sl", NetTransport("bench/sensorlogger/p1"), {"rate": SL_RATE})
     codec = SensorLoggerCodec()
     bus: list[int] = []
@@ -438,7 +441,8 @@ def section_sensorlogger(seeds: list[int]) -> None:
     print(f"   {'step':8s} {'method':38s} p99 |error| ms by time: {hdr}   resets  max ms  bus back")
     print("   (resets: new clock epochs per run; max: largest |error| after 10 s; bus back: bus times earlier than"
           " the previous sample's, over all runs, which a new epoch allows)")
-    sl_name, sl_opts = "ClockSync defaults", {}
+    sl_name = "ClockSync defaults"
+    sl_opts: dict[str, Any] = {}
     if HAVE_PHONE:
         sl_opts, _ = device_setup(SensorLoggerPhone)
         sl_name = f"SensorLoggerPhone as built ({setup_label(sl_opts, False)})"
@@ -447,7 +451,7 @@ def section_sensorlogger(seeds: list[int]) -> None:
         methods: list[tuple[str, Any]] = [
             ("baseline: arrival time", lambda r: (baseline_arrival(r), 0)),
             ("baseline: arrival - index x period", lambda r: (baseline_index(r), 0)),
-            (sl_name, lambda r: sensorlogger_device(r)),
+            (sl_name, sensorlogger_device),
             ("ClockSync window_s=60", lambda r: sensorlogger_device(r, pairs=2, window_s=60.0)),
             ("ClockSync step_s=0.05", lambda r: sensorlogger_device(r, pairs=2, step_s=0.05)),
             ("ClockSync step_s=0.05, window_s=60", lambda r: sensorlogger_device(r, pairs=2, step_s=0.05,
@@ -456,17 +460,17 @@ def section_sensorlogger(seeds: list[int]) -> None:
         outs = {name: [fn(r) for r in runs] for name, fn in methods}
         if HAVE_PHONE:
             same = all(np.array_equal(a[0], direct(r, spec=SENSORLOGGER_CLOCK, **sl_opts)[0])
-                       for a, r in zip(outs[sl_name], runs))
+                       for a, r in zip(outs[sl_name], runs, strict=True))
             print(f"   {step:+6.0f}ms SensorLoggerPhone bus times identical to ClockSync called directly with the "
                   f"same options: {same}")
         for name, _ in methods:
             out = outs[name]
             cells = []
             for a, b in spans:
-                cells.append(max(stat(bo[0], r, a, b).p99 for bo, r in zip(out, runs)))
+                cells.append(max(stat(bo[0], r, a, b).p99 for bo, r in zip(out, runs, strict=True)))
             resets = sorted({bo[1] for bo in out})
-            pmax = max(stat(bo[0], r).pmax for bo, r in zip(out, runs))
-            backs = sum(int(np.sum(np.diff(bo[0][emission_order(r)]) < 0)) for bo, r in zip(out, runs))
+            pmax = max(stat(bo[0], r).pmax for bo, r in zip(out, runs, strict=True))
+            backs = sum(int(np.sum(np.diff(bo[0][emission_order(r)]) < 0)) for bo, r in zip(out, runs, strict=True))
             print(f"   {step:+6.0f}ms {name:38s} {'':24s}" + " ".join(f"{c:11.2f}" for c in cells)
                   + f"   {','.join(map(str, resets)):>6s}  {pmax:8.2f}  {backs:6d}")
 
@@ -510,8 +514,8 @@ def section_osc(seeds: list[int]) -> None:
                 res["pseudo clock"].append(stat(bus, r))
                 resets.append(cs.resets)
             for name, per in res.items():
-                print(f"   {label:28s} {case:21s} {name:12s} p50 {np.median([x.p50 for x in per]):6.2f} ms, p99 per seed "
-                      f"{min(x.p99 for x in per):6.2f} to {max(x.p99 for x in per):6.2f} ms, "
+                print(f"   {label:28s} {case:21s} {name:12s} p50 {np.median([x.p50 for x in per]):6.2f} ms,"
+                      f" p99 per seed {min(x.p99 for x in per):6.2f} to {max(x.p99 for x in per):6.2f} ms, "
                       f"max {max(x.pmax for x in per):7.2f} ms"
                       + (f", re-anchors {min(resets)} to {max(resets)}" if name == "pseudo clock" else ""))
 

@@ -28,11 +28,11 @@ import time  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from _common import check, header, pct, summary  # noqa: E402
-from capture.bus import Overflow, Subscriber  # noqa: E402
+
 from capture.app.orchestrator import Capture  # noqa: E402
 from capture.app.replay import replay_session  # noqa: E402
+from capture.bus import Overflow, Subscriber  # noqa: E402
 from capture.sample import DeviceChunk, Direction  # noqa: E402
 from capture.session import SessionReader  # noqa: E402
 
@@ -174,9 +174,10 @@ def main() -> None:
         wall_nv = sorted(nv)[len(nv) // 2]
         sys.setswitchinterval(0.0005)  # back to the CLI's setting for paced replay
         nchunks = sum(d["chunks"] for d in rep_nv.capture.devices.values())
-        print(f"    [info] without verification (median of {REPEAT}): {wall_nv:.3f} s wall ({span / wall_nv:.1f}x), pipeline"
-              f" {rep_nv.capture.duration_s:.2f} s = {rep_nv.capture.duration_s / nchunks * 1e6:.0f} us per chunk"
-              f" ({nchunks} chunks); 100x would need <= {span / 100 / nchunks * 1e6:.1f} us per chunk end to end")
+        print(f"    [info] without verification (median of {REPEAT}): {wall_nv:.3f} s wall ({span / wall_nv:.1f}x),"
+              f" pipeline {rep_nv.capture.duration_s:.2f} s ="
+              f" {rep_nv.capture.duration_s / nchunks * 1e6:.0f} us per chunk ({nchunks} chunks);"
+              f" 100x would need <= {span / 100 / nchunks * 1e6:.1f} us per chunk end to end")
 
         # ---- (b) real time ----------------------------------------------------------------------
         print()
