@@ -86,8 +86,9 @@ def load_gait() -> tuple[dict, dict, dict]:
     with open(GAIT / "orientation_sample.csv") as f:
         r = csv.reader(f)
         next(r)
-        for row in r:
-            gt.setdefault(row[0].split("_")[0], {}).setdefault(int(row[1]), []).append([float(x) for x in row[3:7]])
+        for fields in r:
+            gt.setdefault(fields[0].split("_")[0], {}).setdefault(int(fields[1]), []).append(
+                [float(x) for x in fields[3:7]])
     gtq = {foot: {s: np.array(v) for s, v in dd.items()} for foot, dd in gt.items()}
     return imu, ev, gtq
 
@@ -96,7 +97,12 @@ def load_gait() -> tuple[dict, dict, dict]:
 # gait evaluation
 
 class GaitEval:
-    """Estimated vs mocap foot orientation, per stride (see the module docstring)."""
+    """Estimated vs mocap foot orientation, per stride (see the module docstring).
+
+    ``A`` is the filter's sensor -> world orientation at the mocap samples, ``G`` the ground truth
+    (foot -> mocap world). The fitted model is ``G ~ tilt * A * mount^-1``: ``mount`` the sensor ->
+    foot mounting rotation, ``tilt`` the tilt of the mocap world's vertical against gravity.
+    """
 
     def __init__(self, q_est: np.ndarray, events: list[dict[str, float]], gt: dict[int, np.ndarray]) -> None:
         n = q_est.shape[0]
@@ -117,26 +123,26 @@ class GaitEval:
         self.A = sl(self.t)                                   # sensor -> world (estimate)
         self.G = Rotation.from_quat(np.concatenate(gts)).inv()  # foot -> mocap world (scipy: scalar last)
 
-    def _est(self, M: Rotation, W: Rotation) -> Rotation:
-        return W * self.A * M.inv()
+    def _est(self, mount: Rotation, tilt: Rotation) -> Rotation:
+        return tilt * self.A * mount.inv()
 
-    def errors(self, M: Rotation, W: Rotation, full_init: bool = False) -> np.ndarray:
+    def errors(self, mount: Rotation, tilt: Rotation, full_init: bool = False) -> np.ndarray:
         """Angle error per mocap sample. Per stride the heading is aligned at its first sample, or with
         ``full_init`` the whole orientation (gaitmap style: only the motion within the stride is the filter's)."""
-        Re = self._est(M, W)
-        D = self.G[self.first] * Re[self.first].inv()
+        est = self._est(mount, tilt)
+        offset = self.G[self.first] * est[self.first].inv()   # per stride, truth vs estimate at its start
         if full_init:
-            Y = D
+            align = offset
         else:
-            qd = D.as_quat()
-            Y = Rotation.from_euler("z", (2 * np.arctan2(qd[:, 2], qd[:, 3]))[:, None])
-        return np.degrees((self.G.inv() * (Y[self.sid] * Re)).magnitude())
+            qd = offset.as_quat()
+            align = Rotation.from_euler("z", (2 * np.arctan2(qd[:, 2], qd[:, 3]))[:, None])
+        return np.degrees((self.G.inv() * (align[self.sid] * est)).magnitude())
 
     def stride_rms(self, e: np.ndarray) -> np.ndarray:
         return np.sqrt(np.bincount(self.sid, e * e, self.ns) / np.bincount(self.sid, None, self.ns))
 
     def _init_mounting(self, mask: np.ndarray) -> Rotation:
-        # within a stride, G0^-1 G(t) = M (A0^-1 A(t)) M^-1: rotation axes map by M
+        # within a stride, G0^-1 G(t) = mount (A0^-1 A(t)) mount^-1: rotation axes map by the mounting
         rf, rs = [], []
         for k in np.unique(self.sid[mask]):
             idx = np.flatnonzero(self.sid == k)
@@ -152,12 +158,12 @@ class GaitEval:
 
     def fit(self, strides: list[int]) -> tuple[Rotation, Rotation]:
         mask = np.isin(self.sid, strides)
-        M0 = self._init_mounting(mask)
+        mount0 = self._init_mounting(mask)
 
         def res(p: np.ndarray) -> np.ndarray:
             return self.errors(Rotation.from_rotvec(p[:3]), Rotation.from_rotvec([p[3], p[4], 0.0]))[mask]
 
-        r = least_squares(res, np.r_[M0.as_rotvec(), 0.0, 0.0], x_scale=0.1)
+        r = least_squares(res, np.r_[mount0.as_rotvec(), 0.0, 0.0], x_scale=0.1)
         return Rotation.from_rotvec(r.x[:3]), Rotation.from_rotvec([r.x[3], r.x[4], 0.0])
 
     def cross_validated(self) -> tuple[np.ndarray, np.ndarray, list[tuple[Rotation, Rotation]]]:
@@ -167,16 +173,16 @@ class GaitEval:
         out_full = np.empty(self.ns)
         fits = []
         for train, test in ((even, odd), (odd, even)):
-            M, W = self.fit(train)
-            fits.append((M, W))
-            out[test] = self.stride_rms(self.errors(M, W))[test]
-            out_full[test] = self.stride_rms(self.errors(M, W, full_init=True))[test]
+            mount, tilt = self.fit(train)
+            fits.append((mount, tilt))
+            out[test] = self.stride_rms(self.errors(mount, tilt))[test]
+            out_full[test] = self.stride_rms(self.errors(mount, tilt, full_init=True))[test]
         return out, out_full, fits
 
-    def heading_drift(self, M: Rotation, W: Rotation) -> tuple[float, float, np.ndarray, np.ndarray]:
+    def heading_drift(self, mount: Rotation, tilt: Rotation) -> tuple[float, float, np.ndarray, np.ndarray]:
         """Slope (deg/s) and its standard error of the per-stride heading error, one alignment."""
-        D = self.G * self._est(M, W).inv()
-        qd = D.as_quat()
+        offset = self.G * self._est(mount, tilt).inv()
+        qd = offset.as_quat()
         h = np.degrees(np.unwrap(2 * np.arctan2(qd[:, 2], qd[:, 3])))
         hs = np.array([np.median(h[self.sid == k]) for k in range(self.ns)])
         ts = np.array([np.median(self.t[self.sid == k]) for k in range(self.ns)])
@@ -204,15 +210,17 @@ def angle_deg(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
 def section_gait() -> tuple[dict[str, dict[str, float]], dict]:
     print("-- orientation accuracy on the gaitmap foot IMUs (204.8 Hz, no magnetometer) vs optical mocap")
     print("   fitted per foot on half the strides, evaluated on the other half (2-fold): mounting rotation (3) +")
-    print("   mocap-vertical tilt (2); per stride: heading aligned at its first mocap sample. Per-stride RMS error, deg.")
+    print("   mocap-vertical tilt (2); per stride: heading aligned at its first mocap sample."
+          " Per-stride RMS error, deg.")
     imu, ev, gt = load_gait()
     out: dict[str, dict[str, float]] = {}
     pooled: dict[str, list[float]] = {}
     keep = {}
-    print("   A = heading aligned per stride (tilt is the filter's); B = gaitmap style, the stride's initial orientation")
+    print("   A = heading aligned per stride (tilt is the filter's); B = gaitmap style, the stride's initial"
+          " orientation")
     print("   taken from the ground truth (only the motion within the stride is the filter's)")
-    print(f"   {'filter':10s} {'foot':6s} {'A median':>8s} {'p90':>6s} {'max':>6s} {'B median':>8s} {'p90':>6s}  strides"
-          f"  fitted tilt (deg)  run time")
+    print(f"   {'filter':10s} {'foot':6s} {'A median':>8s} {'p90':>6s} {'max':>6s} {'B median':>8s} {'p90':>6s}"
+          f"  strides  fitted tilt (deg)  run time")
     for kind in FILTERS:
         for foot in ("left", "right"):
             acc, gyr = imu[foot]
@@ -248,7 +256,7 @@ def section_gait() -> tuple[dict[str, dict[str, float]], dict]:
         bins = [0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0]
         prof = [float(np.median(err[(phase >= a) & (phase < b)])) for a, b in pairwise(bins)]
         print(f"   [info] fusion {foot}: median error by stride phase (0 = mid-stance, min_vel) "
-              + ", ".join(f"{a:.1f}-{b:.1f}: {v:.2f}" for (a, b), v in zip(pairwise(bins), prof)))
+              + ", ".join(f"{a:.1f}-{b:.1f}: {v:.2f}" for (a, b), v in zip(pairwise(bins), prof, strict=True)))
     both = np.median([out["fusion"]["left"], out["fusion"]["right"]])
     print(f"   [info] fusion, median of the two feet's medians: {both:.2f} deg")
     print()
@@ -268,20 +276,21 @@ def section_drift() -> None:
         est = be.finish()
         periods = ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in be.still_periods())
         print(f"   {foot}: auto estimate {np.round(np.degrees(est.bias), 3).tolist()} deg/s, std "
-              f"{np.round(np.degrees(est.std), 3).tolist()}, confidence {est.confidence:.2f}; still periods found: {periods}")
+              f"{np.round(np.degrees(est.std), 3).tolist()}, confidence {est.confidence:.2f};"
+              f" still periods found: {periods}")
         sb = still_bias(gyr[:140], acc[:140])
         applied = est.bias if est.confidence >= 0.9 else np.zeros(3)
         q_raw, _ = run_filter("fusion", t, gyr, acc)
         e = GaitEval(q_raw, ev[foot], gt[foot])
-        M, W = e.fit(list(range(e.ns)))  # the mounting is a constant of the recording: fitted once on raw
+        mount, tilt = e.fit(list(range(e.ns)))  # the mounting is a constant of the recording: fitted once on raw
         variants = [("raw gyro", gyr, {}, None),
                     ("auto bias as the processor applies it (conf>=0.9)", gyr - applied, {}, applied),
                     ("auto bias estimate, applied regardless", gyr - est.bias, {}, est.bias),
                     ("explicit still period (first 0.68 s, still_bias)", gyr - sb.bias, {}, sb.bias),
                     ("fusion gyro_offset learner", gyr, {"gyro_offset": True}, None)]
         for label, g, st, bias in variants:
-            q, _ = run_filter("fusion", t, g, acc, **st)
-            slope, se, _, _ = GaitEval(q, ev[foot], gt[foot]).heading_drift(M, W)
+            q, _ = run_filter("fusion", t, g, acc, None, **st)
+            slope, se, _, _ = GaitEval(q, ev[foot], gt[foot]).heading_drift(mount, tilt)
             res.setdefault(foot, {})[label] = slope
             bs = "" if bias is None else str(np.round(np.degrees(bias), 3).tolist())
             print(f"   {foot:6s} {label:50s} {slope:+12.4f} {se:7.4f}  {bs}")
@@ -299,8 +308,8 @@ def section_xio() -> None:
     t, gyr, acc, mag = load_xio()
     sl_all = slice(500, None)           # after 5 s of convergence
     sl_clean = slice(500, 10000)        # before the magnetic disturbance Fusion rejects (samples 10000-13000)
-    print(f"   {'mode':5s} {'filter':10s} {'all: median':>11s} {'p95':>7s}   {'no disturbance: median':>22s} {'p95':>7s}"
-          f"   {'samples/s':>9s}")
+    print(f"   {'mode':5s} {'filter':10s} {'all: median':>11s} {'p95':>7s}   {'no disturbance: median':>22s}"
+          f" {'p95':>7s}   {'samples/s':>9s}")
     for use_mag in (True, False):
         ref, el = run_filter("fusion", t, gyr, acc, mag if use_mag else None)
         mode = "MARG" if use_mag else "IMU"
@@ -324,7 +333,7 @@ def section_xio() -> None:
 def _imu_info(name: str, rate: float) -> StreamInfo:
     return StreamInfo(name, "imu", ("ax", "ay", "az", "gx", "gy", "gz", "temp"),
                       ("m/s^2",) * 3 + ("rad/s",) * 3 + ("degC",), rate,
-                      DeviceIdentity(kind="bench", name=name.split("/")[0]), "sensor frame")
+                      DeviceIdentity(kind="bench", name=name.split("/", maxsplit=1)[0]), "sensor frame")
 
 
 def section_throughput() -> None:
@@ -406,8 +415,8 @@ def section_throughput() -> None:
         cpu = float(np.median([run_batches(bsz) for _ in range(reps)]))
         sps = total / cpu
         frac = (17 * 200) / sps
-        print(f"   OrientationProcessor, 17 streams x 200 Hz as SampleBatch items of {bsz}: {sps:,.0f} samples/s of CPU "
-              f"-> 17 IMUs at 200 Hz cost {frac * 100:.1f}% of one core")
+        print(f"   OrientationProcessor, 17 streams x 200 Hz as SampleBatch items of {bsz}: {sps:,.0f} samples/s"
+              f" of CPU -> 17 IMUs at 200 Hz cost {frac * 100:.1f}% of one core")
         if bsz == 20:
             check("processor, 17 IMUs x 200 Hz in batches of 20 (100 ms)", frac < 0.05,
                   f"{frac * 100:.2f}% of one core (target < 5%)")

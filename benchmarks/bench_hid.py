@@ -28,29 +28,44 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import argparse  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from typing import Any  # noqa: E402
+import argparse
+import tempfile
+import time
+from typing import TYPE_CHECKING, Any
 
-import numpy as np  # noqa: E402
+import numpy as np
+from _common import check, header, pct, summary
 
-from _common import check, header, pct, summary  # noqa: E402
-from capture.bus import Overflow, Subscriber  # noqa: E402
-from capture.app.orchestrator import Capture  # noqa: E402
-from capture.sample import DeviceChunk, DeviceChunks, Sample, SampleBatch  # noqa: E402
-from capture.session import SessionReader  # noqa: E402
-from devices import open_device  # noqa: E402
+from capture.app.orchestrator import Capture
+from capture.bus import Overflow, Subscriber
+from capture.errors import EndOfStream
+from capture.sample import DeviceChunk, DeviceChunks, Sample, SampleBatch
+from capture.session import SessionReader
+from devices import open_device
+from sim_devices.hid_sim import SimHidTransport
+
+if TYPE_CHECKING:
+    from capture.sample import Chunk
+    from devices.base import Device
 
 CONTROLLERS = [("dualsense", "usb", 250.0), ("dualsense", "bluetooth", 250.0), ("ds4", "usb", 250.0),
-               ("ds4", "bluetooth", 250.0), ("switchpro", "usb", 1000.0 / 15.0), ("switchpro", "bluetooth", 1000.0 / 15.0)]
+               ("ds4", "bluetooth", 250.0), ("switchpro", "usb", 1000.0 / 15.0),
+               ("switchpro", "bluetooth", 1000.0 / 15.0)]
 
 
-def _reports(url: str, n: int) -> tuple[Any, list[Any]]:
+def _sim(d: Device) -> SimHidTransport:
+    """The simulator behind a ``simhid://`` device: its schedule, what it sent and dropped, the truth."""
+    t = d.transport
+    if not isinstance(t, SimHidTransport):
+        raise TypeError(f"{d.name}: {type(t).__name__} is not a simhid:// transport")
+    return t
+
+
+def _reports(url: str, n: int) -> tuple[Device, list[Chunk]]:
     """Open a simulated device on a virtual clock (the handshake runs), then take ``n`` reports."""
     d = open_device(url)
     d.open()
-    chunks = []
+    chunks: list[Chunk] = []
     while len(chunks) < n:
         c = d.transport.read(0.0)
         if c is not None:
@@ -63,7 +78,7 @@ def decode_cost() -> None:
     for kind, bus, rate in CONTROLLERS:
         try:
             d, chunks = _reports(f"p={kind}@simhid://{kind}?realtime=false&bus={bus}", 20_000)
-        except Exception as exc:  # noqa: BLE001 - a kind not built yet is reported, not fatal
+        except Exception as exc:  # a kind not built yet is reported, not fatal
             print(f"   {kind} over {bus}: not measured ({type(exc).__name__}: {exc})")
             continue
         for c in chunks[:1000]:
@@ -88,7 +103,7 @@ def decode_cost() -> None:
             d.process_chunk(c)
         per = (time.perf_counter() - t0) / len(chunks)
         print(f"   baseline: generic descriptor-driven mouse report: {per * 1e6:.1f} us per report")
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # reported, not fatal: the controllers were measured
         print(f"   baseline: not measured ({type(exc).__name__}: {exc})")
     print()
 
@@ -116,7 +131,7 @@ def live_rig(seconds: float) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         try:
             cap = Capture(specs, output=f"{tmp}/rig.mcap")
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # a rig that cannot start is reported, not fatal
             print(f"   not measured ({type(exc).__name__}: {exc})\n")
             return
         got = _Chunks()
@@ -126,7 +141,7 @@ def live_rig(seconds: float) -> None:
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
         all_lat = []
         for d in cap.devices:
-            t = d.transport
+            t = _sim(d)
             sched = np.asarray(t.arrival_ns, np.int64)  # delivered streamed reports, as scheduled
             stamps = np.asarray(got.by_dev.get(d.name, []), np.int64)[-len(sched):] if len(sched) else np.empty(0)
             # lost: reports that overflowed the OS buffer (64, as hidraw) while the reader was late,
@@ -142,7 +157,8 @@ def live_rig(seconds: float) -> None:
         if lat.size:
             p99 = pct(lat, 99)[0]
             check("rig: added latency p99 < 2 ms", p99 < 2.0, f"p99 {p99:.3f} ms")
-        print(f"   process CPU {cpu / wall * 100:.1f}% of one core for {sum(len(v) for v in got.by_dev.values()) / wall:.0f}"
+        n_reports = sum(len(v) for v in got.by_dev.values())
+        print(f"   process CPU {cpu / wall * 100:.1f}% of one core for {n_reports / wall:.0f}"
               f" reports/s (readers, bus, recorder); recorder: {rep.recorder_error or 'ok'}")
         r = SessionReader(f"{tmp}/rig.mcap")
         print(f"   session: {', '.join(f'{s} {len(r.samples(s))}' for s in sorted(r.streams) if '/' in s)}")
@@ -156,14 +172,14 @@ def clock_accuracy() -> None:
         try:
             d = open_device(url)
             items = d.open()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # a kind not built yet is reported, not fatal
             print(f"   {kind}: not measured ({type(exc).__name__}: {exc})")
             continue
         bus, host = [], []
         while True:
             try:
                 its = d.poll(0.0)
-            except Exception:  # noqa: BLE001 - EndOfStream
+            except EndOfStream:  # the simulated duration is over
                 break
             for it in its:
                 if type(it) is Sample and it.stream.endswith("/imu"):
@@ -173,8 +189,8 @@ def clock_accuracy() -> None:
                     bus += it.t_bus_ns.tolist()
                     host += it.t_host_ns.tolist()
         del items
-        t = d.transport
-        truth = np.asarray(t.truth_ns, np.int64) + int(t.opts["latency_ms"] * 1e6)  # what a clock fit can know
+        t = _sim(d)
+        truth = np.asarray(t.truth_ns, np.int64) + t.latency_ns  # what a clock fit can know
         bus_a, host_a = np.asarray(bus, np.int64), np.asarray(host, np.int64)
         per = len(bus_a) // max(1, len(truth))  # samples per report (3 for the Switch)
         if per > 1:  # samples within a report are 5 ms apart, the last at the report's time

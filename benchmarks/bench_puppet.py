@@ -15,6 +15,7 @@ import socket
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from capture.sample import DeviceIdentity, StreamInfo
 from retarget.puppet import PhoneInput, PuppetRetargeter
 from retarget.vmc import VmcEncoder, build_frame, decode_frame, encode_frame
 from sim_devices.motion import PuppeteerMotion
+
+if TYPE_CHECKING:
+    from retarget.skeleton import Skeleton
 
 
 def scripted(seconds: float, fps: float) -> list[PhoneInput]:
@@ -136,11 +140,12 @@ def foot_slide(p: PuppetRetargeter, speed: float, fps: float = 60.0) -> float:
     return slide_of(np.array(frames), sk, fps)
 
 
-def slide_of(P: np.ndarray, sk, fps: float) -> float:
+def slide_of(positions: np.ndarray, sk: Skeleton, fps: float) -> float:
+    """The longest slide of a planted foot, m, over joint positions ``(frames, joints, 3)``."""
     worst = 0.0
     for name in ("LeftFoot", "RightFoot"):
         j = sk.index(name)
-        y, xz = P[:, j, 1], P[:, j, [0, 2]]
+        y, xz = positions[:, j, 1], positions[:, j, [0, 2]]
         sp = np.r_[0.0, np.linalg.norm(np.diff(xz, axis=0), axis=1) * fps]
         planted = (y < np.percentile(y, 5) + 0.01) & (sp < 0.3)
         start = None
@@ -157,8 +162,8 @@ def slide_of(P: np.ndarray, sk, fps: float) -> float:
 def clip_slide(p: PuppetRetargeter, name: str) -> float:
     c = p.clips[name]
     adv = c.root_pos[-1] - c.root_pos[0]
-    P = np.concatenate([p.skeleton.fk(c.root_pos + k * adv, c.rotations)[:-1] for k in range(4)])
-    return slide_of(P, p.skeleton, c.fps)
+    positions = np.concatenate([p.skeleton.fk(c.root_pos + k * adv, c.rotations)[:-1] for k in range(4)])
+    return slide_of(positions, p.skeleton, c.fps)
 
 
 def _result(ok: bool, text: str) -> None:
@@ -186,20 +191,24 @@ def main() -> int:
     st = np.array(states)
     for name in sorted(set(states)):
         sel = ms[st == name]
-        print(f"   {name:18s} {sel.size:5d} frames  p50 {np.percentile(sel, 50):.3f} ms  p99 {np.percentile(sel, 99):.3f} ms")
+        print(f"   {name:18s} {sel.size:5d} frames  p50 {np.percentile(sel, 50):.3f} ms"
+              f"  p99 {np.percentile(sel, 99):.3f} ms")
     print(f"   frames {len(ms)}: p50 {np.percentile(ms, 50):.3f} ms  p99 {np.percentile(ms, 99):.3f} ms"
-          f"  max {ms.max():.3f} ms   (FK alone: p50 {np.percentile(fk, 50):.3f} ms, p99 {np.percentile(fk, 99):.3f} ms)")
+          f"  max {ms.max():.3f} ms   (FK alone: p50 {np.percentile(fk, 50):.3f} ms,"
+          f" p99 {np.percentile(fk, 99):.3f} ms)")
     _result(float(np.percentile(ms, 99)) < 1.0, f"per-frame p99 < 1 ms for {p.skeleton.n_joints} joints, all"
             f" states: {np.percentile(ms, 99):.3f} ms")
     rod = rod_inputs(seconds, 60.0)
     rms, rstates = per_frame(p, rod)
     print(f"   IMU-only phone, the puppeteer choreography ({', '.join(dict.fromkeys(rstates))}): {len(rms)} frames"
           f" p50 {np.percentile(rms, 50):.3f} ms  p99 {np.percentile(rms, 99):.3f} ms")
-    _result(float(np.percentile(rms, 99)) < 1.0, f"per-frame p99 < 1 ms, IMU-only phone: {np.percentile(rms, 99):.3f} ms")
+    _result(float(np.percentile(rms, 99)) < 1.0,
+            f"per-frame p99 < 1 ms, IMU-only phone: {np.percentile(rms, 99):.3f} ms")
 
     print("\n-- phone sample -> VMC bundle -> UDP loopback -> decoded")
     lat = vmc_latency(p, inputs[: 600 if args.quick else 1800])
-    print(f"   latency p50 {np.percentile(lat, 50):.3f} ms  p99 {np.percentile(lat, 99):.3f} ms  max {lat.max():.3f} ms")
+    print(f"   latency p50 {np.percentile(lat, 50):.3f} ms  p99 {np.percentile(lat, 99):.3f} ms"
+          f"  max {lat.max():.3f} ms")
     _result(float(np.percentile(lat, 99)) < 5.0 and len(lat) > 0,
            f"phone sample to VMC packet on loopback p99 < 5 ms: {np.percentile(lat, 99):.3f} ms")
 

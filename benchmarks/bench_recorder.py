@@ -27,13 +27,14 @@ import time  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from _common import check, header, pct, run_sample_load, summary  # noqa: E402
-from capture.bus import Overflow, Subscriber  # noqa: E402
+
 from capture.app.orchestrator import Capture  # noqa: E402
+from capture.bus import Overflow, Subscriber  # noqa: E402
 from capture.sample import Sample  # noqa: E402
 from capture.session import SessionReader  # noqa: E402
 from capture.summary import summarize  # noqa: E402
+from devices.transports.base import SimulatorTruth  # noqa: E402
 
 DURATION_S = 10.0
 BASE_S = 5.0
@@ -81,12 +82,15 @@ def run_capture(output: str | None, duration_s: float) -> dict[str, Any]:
     delays = []
     got = 0
     for d in cap.devices:
-        truth = np.asarray(d.transport.truth_ns, np.int64)
+        t = d.transport
+        if not isinstance(t, SimulatorTruth):
+            raise TypeError(f"{d.name}: {type(t).__name__} does not know the true reading times")
+        truth = np.asarray(t.truth_ns, np.int64)
         rows = np.asarray(ku.rows.get(f"{d.name}/imu", []), np.int64).reshape(-1, 2)
         got += len(rows)
         ok = rows[:, 0] < truth.size
         delays.append((rows[ok, 1] - (truth[rows[ok, 0]] + LATENCY_NS)) / 1e6)
-    expected = int(round((17 * 250 + 1000) * report.duration_s))
+    expected = round((17 * 250 + 1000) * report.duration_s)
     rates = [v["rate_hz"] for k, v in report.streams.items() if k.endswith("/imu")]
     return {"cap": cap, "report": report, "wall": wall, "cpu_frac": cpu / wall, "peak": peak,
             "delays": np.concatenate(delays), "got": got, "expected": expected, "rates": rates}
@@ -132,7 +136,7 @@ def main() -> None:
               f" {sum(s['samples'] for s in summ['streams'])} samples in {len(summ['streams'])} streams;"
               f" sequence gaps {stream_drops}")
         print(f"   keep-up: {keepup_line(res)}")
-        print(f"   process CPU: {res['cpu_frac'] * 100:.0f}% of one core (of {os.cpu_count() * 100}%);"
+        print(f"   process CPU: {res['cpu_frac'] * 100:.0f}% of one core (of {(os.cpu_count() or 1) * 100}%);"
               f" baseline without recorder {base_cpu * 100:.0f}%")
         thr_ok = got >= 0.98 * exp
         time_ok = d99 < 5.0
@@ -152,7 +156,8 @@ def main() -> None:
         # ---- 2: sample-level variant -----------------------------------------------------------
         lr = run_sample_load(os.path.join(tmp, "samples.mcap"), DURATION_S)
         s2 = summarize(SessionReader(os.path.join(tmp, "samples.mcap")))
-        print(f"2. sample-level variant (bench_bus load: 18 paced publisher threads, no devices), {lr.duration_s:.1f} s:")
+        print("2. sample-level variant (bench_bus load: 18 paced publisher threads, no devices),"
+              f" {lr.duration_s:.1f} s:")
         print(f"   published {lr.published} of {lr.expected}; recorder dropped {lr.rec_dropped}, max queue"
               f" {lr.rec_max_pending} items ({lr.rec_max_pending_bytes / 1e3:.0f} kB); file"
               f" {lr.file_bytes / 1e6:.2f} MB ({lr.file_bytes / max(1, lr.published):.1f} bytes per sample);"

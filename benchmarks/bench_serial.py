@@ -26,16 +26,17 @@ sys.setswitchinterval(0.0005)  # as the perfcap CLI does for live work
 
 import argparse  # noqa: E402
 import os  # noqa: E402
-import subprocess  # noqa: E402
 import select  # noqa: E402
+import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
+from functools import partial  # noqa: E402
 
 import numpy as np  # noqa: E402
 import serial  # noqa: E402
-
 from _common import check, header, pct, summary  # noqa: E402
+
 from capture.app.orchestrator import Capture  # noqa: E402
 from capture.sample import Chunk, ChunkRun  # noqa: E402
 from devices import open_device  # noqa: E402
@@ -59,11 +60,9 @@ def decode_throughput() -> None:
                 break
         t_s = np.concatenate(times)[:len(pieces)]
         # chunks as a 200 Hz link delivers them: one reading per chunk
-        chunks = [Chunk(p, int(1e9 + t * 1e9)) for p, t in zip(pieces, t_s)]
+        chunks = [Chunk(p, int(1e9 + t * 1e9)) for p, t in zip(pieces, t_s, strict=True)]
         q = "&".join(f"{k}={v}" for k, v in opts.items())
-
-        def fresh():
-            return open_device(f"b={kind}@loop://?{q}")
+        fresh = partial(open_device, f"b={kind}@loop://?{q}")  # a new device on a loop:// port, same options
 
         probe = fresh()
         n_frames = sum(len(probe.codec.feed(p)) for p in pieces)
@@ -251,8 +250,8 @@ def live_cpu(seconds: float = 15.0) -> None:
             p.close()
         for s in sims:
             s.wait(30)
-        print(f"   baseline (a bare select + os.read thread per port, no decoding): {sum(got) / 44 / bwall:.0f} readings/s,"
-              f" {bcpu / bwall * 100:.2f}% of one core -> perfcap's decoding, stamping and bus cost"
+        print(f"   baseline (a bare select + os.read thread per port, no decoding): {sum(got) / 44 / bwall:.0f}"
+              f" readings/s, {bcpu / bwall * 100:.2f}% of one core -> perfcap's decoding, stamping and bus cost"
               f" {(frac - bcpu / bwall) * 100:.2f}% on top")
     print()
 

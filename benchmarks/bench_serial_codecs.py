@@ -20,7 +20,7 @@ Measurement script: prints figures and PASS/FAIL per target, always exits 0.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from _common import check, header, summary
@@ -30,6 +30,9 @@ from devices.bno08x import Bno08xRvcImu, encode_rvc_many
 from devices.codecs.bno08x_rvc import FRAME_LEN, Bno08xRvcCodec
 from devices.textline import TextLineImu, TextLineLayout
 from devices.transports import open_transport
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 TARGET = 1_000_000
 OPTS = {"format": "csv", "columns": "t,ax,ay,az,gx,gy,gz", "units": "ms,g,g,g,dps,dps,dps", "time": "t",
@@ -47,16 +50,19 @@ def best_rate(n: int, fn: Callable[[], object], repeat: int = 3) -> float:
 
 
 def blocks(data: bytes, size: int, sep: bytes | None = None, frame: int | None = None) -> list[bytes]:
-    """``data`` cut into blocks of about ``size`` bytes of whole frames (fixed length or lines)."""
+    """``data`` cut into blocks of about ``size`` bytes of whole frames: of ``frame`` bytes each, or
+    lines ending in ``sep``; with neither, plain ``size``-byte blocks."""
     out = []
     i = 0
     while i < len(data):
         if frame:
             j = min(len(data), i + max(frame, size // frame * frame))
+        elif sep:
+            j = data.rfind(sep, i, i + size) + 1
+            if j <= i:  # a line longer than the block: cut after its end
+                j = data.find(sep, i) + 1
         else:
-            j = data.rfind(sep, i, i + size) + 1 if sep else i + size  # type: ignore[arg-type]
-            if j <= i:
-                j = data.find(sep, i) + 1  # type: ignore[arg-type]
+            j = i + size
         out.append(data[i:j])
         i = j
     return out
@@ -119,9 +125,9 @@ def bench_textline() -> None:
     t = np.arange(n) / 100.0
     v = rng.normal(0, 5, (n, 6))
     acc, gyr = v[:, :3] / 9.80665, v[:, 3:] * 57.29577951308232
-    csv = "".join(f"{int(round(t[i] * 1000))},{acc[i, 0]:.4f},{acc[i, 1]:.4f},{acc[i, 2]:.4f},"
+    csv = "".join(f"{round(t[i] * 1000)},{acc[i, 0]:.4f},{acc[i, 1]:.4f},{acc[i, 2]:.4f},"
                   f"{gyr[i, 0]:.3f},{gyr[i, 1]:.3f},{gyr[i, 2]:.3f}\n" for i in range(n)).encode()
-    kv = "".join(f"t:{int(round(t[i] * 1000))} ax:{acc[i, 0]:.4f} ay:{acc[i, 1]:.4f} az:{acc[i, 2]:.4f} "
+    kv = "".join(f"t:{round(t[i] * 1000)} ax:{acc[i, 0]:.4f} ay:{acc[i, 1]:.4f} az:{acc[i, 2]:.4f} "
                  f"gx:{gyr[i, 0]:.3f} gy:{gyr[i, 1]:.3f} gz:{gyr[i, 2]:.3f}\n" for i in range(n)).encode()
     print(f"-- text lines: {n:,} lines, CSV {len(csv) / n:.1f} B/line, key:value {len(kv) / n:.1f} B/line")
 
