@@ -9,7 +9,6 @@ import json
 import logging
 import math
 import re
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from hidtools.hid import ReportDescriptor
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from capture.clock import ManualClock
 from capture.errors import DeviceInitError, DeviceTimeoutError, EndOfStream
 from capture.sample import Chunk, Sample
 from devices import open_device
@@ -290,23 +290,27 @@ def test_joycon_side_checks():
 # -- failures ------------------------------------------------------------------------------------
 @pytest.mark.parametrize("bus", ["usb", "bluetooth"])
 def test_silent_controller_times_out_bounded(bus):
-    dev = open_device(f"pad=switchpro@simhid://switchpro?realtime=false&bus={bus}&handshake=silent&reply_timeout=0.1")
-    t0 = time.monotonic()
+    clock = ManualClock()  # moves only when the handshake waits (a timed read jumps to its deadline)
+    dev = open_device(f"pad=switchpro@simhid://switchpro?realtime=true&bus={bus}&handshake=silent&reply_timeout=0.1",
+                      clock=clock)
+    t0 = clock.now_ns()
     with pytest.raises(DeviceTimeoutError, match="no answer to" if bus == "bluetooth" else "0x80 0x01"):
         dev.open()
-    assert time.monotonic() - t0 < 1.0  # 2 attempts x 0.1 s
+    assert clock.now_ns() - t0 == pytest.approx(2 * 100_000_000, abs=1_000_000)  # 2 attempts x 0.1 s
 
 
 @pytest.mark.parametrize("mode,match", [("wrong", r"only ever answered with replies to other subcommands \(0x03\)"),
                                         ("wrong_spi", r"SPI read of factory IMU calibration at 0x6020 .* 0x6030"),
                                         ("nack", r"device info \(0x02\) was refused \(NACK")])
 def test_wrong_answers_are_named(mode, match):
-    dev = open_device(f"pad=switchpro@simhid://switchpro?realtime=false&bus=bluetooth&handshake={mode}")
-    t0 = time.monotonic()
+    clock = ManualClock()  # moves only when the handshake waits (a timed read jumps to its deadline)
+    dev = open_device(f"pad=switchpro@simhid://switchpro?realtime=true&bus=bluetooth&handshake={mode}"
+                      "&reply_timeout=0.5&retries=1", clock=clock)
+    t0 = clock.now_ns()
     with pytest.raises(DeviceInitError, match=match):
         dev.open()
     # bounded: a wrong reply is skipped while the right one may still come, for at most the retries
-    assert time.monotonic() - t0 < 2.5
+    assert clock.now_ns() - t0 <= 2 * 500_000_000 + 1_000_000  # (retries + 1) x reply_timeout
 
 
 def test_blank_calibration_falls_back_to_nominal_with_warnings(caplog):

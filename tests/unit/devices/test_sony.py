@@ -9,7 +9,6 @@ import json
 import logging
 import math
 import re
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from capture.clock import ManualClock
 from capture.errors import DeviceInitError, DeviceTimeoutError, ProtocolError
 from capture.orientation import check_imu_stream
 from capture.sample import DeviceChunk, Sample
@@ -35,7 +35,7 @@ from devices.codecs.sony import (
     encode_calibration,
     parse_calibration,
 )
-from devices.hid.sony import DualSense, DualShock4
+from devices.hid.sony import REDUCED_PER_S, DualSense, DualShock4
 
 hidtools_hid = pytest.importorskip("hidtools.hid")
 
@@ -312,22 +312,28 @@ def test_descriptors_and_calibration_are_kept_for_sessions():
 # -- handshake failures -----------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["ds4", "dualsense"])
 def test_silent_pad_over_usb_fails_clearly(kind):
-    d = open_device(f"pad=simhid://{kind}?realtime=false&handshake=silent")
-    t0 = time.monotonic()
+    clock = ManualClock()  # moves only when the handshake waits (a timed read jumps to its deadline)
+    d = open_device(f"pad=simhid://{kind}?realtime=true&handshake=silent", clock=clock)
+    t0 = clock.now_ns()
     with pytest.raises(DeviceInitError, match="did not answer the calibration feature report"):
         d.open()
-    assert time.monotonic() - t0 < 2.0
+    assert clock.now_ns() == t0  # a refused feature report fails at once, without waiting
     d.close()
 
 
 @pytest.mark.parametrize("kind", ["ds4", "dualsense"])
 @pytest.mark.parametrize("realtime", ["false", "true"])
 def test_silent_pad_over_bluetooth_times_out_waiting_for_full_reports(kind, realtime):
-    d = open_device(f"pad=simhid://{kind}?realtime={realtime}&bus=bluetooth&handshake=silent&init_timeout=0.3")
-    t0 = time.monotonic()
-    with pytest.raises(DeviceTimeoutError, match="reduced reports"):
+    clock = ManualClock()  # moves only when the handshake waits (a timed read jumps to its deadline)
+    d = open_device(f"pad=simhid://{kind}?realtime={realtime}&bus=bluetooth&handshake=silent&init_timeout=0.3",
+                    clock=clock)
+    t0 = clock.now_ns()
+    with pytest.raises(DeviceTimeoutError, match="reduced reports") as ei:
         d.open()
-    assert time.monotonic() - t0 < 1.5
+    # bounded by init_timeout (on the device's clock) or by the reduced reports that many seconds bring
+    assert clock.now_ns() - t0 <= 300_000_000
+    seen = int(re.search(r"(\d+) seen", str(ei.value)).group(1))
+    assert 0 < seen <= max(25, int(REDUCED_PER_S * 0.3))
     d.close()
 
 
