@@ -178,9 +178,7 @@ def test_nested_bundles_and_a_future_timetag_do_not_block(monkeypatch):
     assert [m.address for m in frame.messages] == [f"/{UUID}/gravity", f"/{UUID}/accel", f"/{UUID}/gyro"]
     ntp_now = (time.time() + 2208988800) * 2**32
     assert frame.timetag is not None and frame.timetag > ntp_now + 86400 * 2**32  # reported, not waited for
-    t = time.perf_counter()
-    items = feed(device(), [dgram])
-    assert time.perf_counter() - t < 1.0
+    items = feed(device(), [dgram])  # time.sleep raises: the device does not wait for the time tag either
     assert samples(items, "imu")[0].values == (0.0, 0.0, G0, 0.5, 0.25, 0.125)
 
 
@@ -305,9 +303,7 @@ BAD_DATAGRAMS = {
 @pytest.mark.parametrize("name", BAD_DATAGRAMS)
 def test_malformed_datagrams_are_counted_not_raised(name):
     dev = device()
-    t = time.perf_counter()
     items = feed(dev, [BAD_DATAGRAMS[name], zigsim_snapshot()])
-    assert time.perf_counter() - t < 2.0
     assert dev.codec.stats.framing_errors == 1
     assert len(samples(items, "imu")) == 1  # the next datagram is fine
     with pytest.raises(ProtocolError):
