@@ -9,14 +9,17 @@ Targets (issue #6):
   7,804 channels x 4 loops in at most 1 s (median of repeated runs); 1, 12 and 2,611 channels are
   timed too;
 * accuracy on jittered synthetic loops (3-6 loops, +-10% loop durations, noise 0.03, 1, 3 and 12
-  channels, plus the spec's test-4 takes with one harmonic per channel): median period error under
-  0.5%, max under 3%, never a half, double (error beyond +-30%) or missing answer;
+  channels, plus harmonic takes: three channels carrying the loop's first, second and third harmonics,
+  so that parts of a loop look alike, the case for which Ciccone 2019, section 5.3, takes the median
+  period over several seeds): median period error under 0.5%, max under 3%, never a half, double
+  (error beyond +-30%) or missing answer;
 * real data, the gaitmap walk (each foot's IMU and each foot's mocap markers, the whole take with
   its turn): period within 0.5% of the median annotated stride, cuts at a consistent gait phase.
 
-**Peers** (``cycle_baselines.py``, spec ``cycles-and-puppet.md`` §1.5): the FFT autocorrelation
-(channels standardised, power spectra summed, first peak at or above 0.9 of the highest after the
-first zero crossing, parabolic refinement) and stumpy's multi-dimensional matrix profile
+**Peers** (``cycle_baselines.py``): the FFT autocorrelation (channels standardised, power spectra
+summed, first peak at or above 0.9 of the highest after the first zero crossing, parabolic
+refinement), the frequency analysis that Ciccone 2019, section 5.1, sets aside because performed
+loops vary in duration (``docs/design/cycles.md``), and stumpy's multi-dimensional matrix profile
 (``stumpy.mstump``, window 0.5 s; the period is the fundamental of the nearest-neighbour spacings of
 the all-dimension profile). stumpy is the ``bench`` extra (``pip install -e .[bench]``); without it
 its columns read n/a. Its numba JIT (the first call in a process) is timed separately and excluded
@@ -43,11 +46,10 @@ import argparse
 import csv
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cycle_baselines as cb
 import numpy as np
@@ -55,12 +57,19 @@ from _common import check, header, summary
 
 from sim_devices.loops import jittered_loops
 
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from cycles import Cycle
+
+_extract: Callable[..., Cycle] | None = None
+EXTRACT_ERR = ""
 try:
-    from cycles import extract as _extract
-    EXTRACT_ERR = ""
+    from cycles import extract
 except ImportError as _exc:  # pragma: no cover - depends on the tree
-    _extract = None
     EXTRACT_ERR = f"cycles.extract is not available ({_exc})"
+else:
+    _extract = extract
 
 ROOT = Path(__file__).resolve().parent.parent
 TRACES = ROOT.parent / "shared" / "traces"
@@ -84,7 +93,7 @@ def have_extract() -> bool:
     return _extract is not None
 
 
-def extract_period(t: np.ndarray, x: np.ndarray) -> Any:
+def extract_period(t: np.ndarray, x: np.ndarray) -> Cycle:
     """``cycles.extract`` with its defaults (seed 0)."""
     if _extract is None:
         raise RuntimeError(EXTRACT_ERR)
@@ -190,7 +199,7 @@ class Case:
     harmonic: bool = False
 
     def take(self) -> Any:
-        if self.harmonic:  # spec §4 test 4: harmonics 1, 2, 3 (amplitudes 1, 1/2, 1/3), sigma 0.02
+        if self.harmonic:  # harmonics 1, 2, 3 of the loop (amplitudes 1, 1/2, 1/3), one per channel, noise 0.02
             return jittered_loops(self.loops, period_s=self.period, channels=3, harmonics=3, noise=0.02,
                                   time_jitter=0.2, per_channel_harmonic=True, seed=1000 + self.seed)
         return jittered_loops(self.loops, period_s=self.period, channels=self.channels, noise=0.03,
@@ -236,7 +245,7 @@ def cases(quick: bool) -> list[Case]:
 def bench_accuracy(quick: bool) -> None:
     cs = cases(quick)
     print(f"-- accuracy: {len(cs)} jittered takes (3-6 loops, +-10% loop durations, noise 0.03, 1/3/12 channels,"
-          f" nominal T 0.8-1.3 s at 120 Hz; plus {sum(c.harmonic for c in cs)} spec test-4 takes: one harmonic"
+          f" nominal T 0.8-1.3 s at 120 Hz; plus {sum(c.harmonic for c in cs)} harmonic takes: one harmonic"
           f" per channel, noise 0.02); truth = mean loop duration")
     methods: dict[str, Callable[[np.ndarray, np.ndarray], float]] = {}
     if have_extract():
@@ -333,7 +342,7 @@ def circ_std_pct(phases: np.ndarray) -> float:
     """Circular standard deviation of phases (1 = one stride), in % of a stride."""
     if phases.size == 0:
         return float("nan")
-    r = abs(np.mean(np.exp(2j * np.pi * phases)))
+    r = float(abs(np.mean(np.exp(2j * np.pi * phases))))
     return float(np.sqrt(-2.0 * np.log(max(r, 1e-300))) / (2 * np.pi) * 100)
 
 

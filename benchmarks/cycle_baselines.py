@@ -1,17 +1,18 @@
 """Peer period estimators for the cycle benchmark (a helper module of ``bench_cycles.py``, not a benchmark).
 
-Two baselines that ``cycles.extract`` is measured against (issue 6, spec ``cycles-and-puppet.md`` §1.5):
+Two baselines that ``cycles.extract`` is measured against (issue 6):
 
-* :func:`acf_period`: the FFT autocorrelation estimate, exactly as §1.5 describes it: channels
-  standardised, power spectra summed, the first peak at or above 0.9 of the highest peak after the
-  first zero crossing, refined by a parabola through the peak and its neighbours.
+* :func:`acf_period`: the FFT autocorrelation estimate, a frequency analysis of the kind Ciccone 2019
+  (section 5.1) sets aside because performed loops vary in duration: channels standardised, power
+  spectra summed, the first peak at or above 0.9 of the highest peak after the first zero crossing,
+  refined by a parabola through the peak and its neighbours.
 * :func:`mstump_period`: stumpy's multi-dimensional matrix profile (``stumpy.mstump``): the period is
   the typical spacing between every subsequence and its nearest neighbour in the all-dimension
   profile. stumpy is an optional dependency (``pip install perfcap[bench]``); without it the function
   returns NaN. Its first call in a process pays numba's JIT compilation (about 10 s on 2 cores), so
   time a warm-up call separately (see :func:`mstump_warmup`).
 
-Both work on plain arrays ``t (n,)`` in seconds and ``X (n, C)`` and return a period in seconds, or NaN
+Both work on plain arrays ``t (n,)`` in seconds and ``values (n, C)`` and return a period in seconds, or NaN
 when they find none. They never raise on data that merely has no period.
 """
 
@@ -35,18 +36,18 @@ MSTUMP_SHARE = 0.1
 _BLOCK = 512
 
 
-def _as_arrays(t: Any, X: Any) -> tuple[np.ndarray, np.ndarray]:
+def _as_arrays(t: Any, values: Any) -> tuple[np.ndarray, np.ndarray]:
     t = np.asarray(t, np.float64).reshape(-1)
-    x = np.asarray(X, np.float64)
+    x = np.asarray(values, np.float64)
     if x.ndim == 1:
         x = x[:, None]
     if x.ndim != 2 or x.shape[0] != t.size:
-        raise ValueError(f"X must be (n, channels) with n = len(t) = {t.size}, not {x.shape}")
+        raise ValueError(f"values must be (n, channels) with n = len(t) = {t.size}, not {x.shape}")
     return t, x
 
 
-def uniform(t: Any, X: Any) -> tuple[float, np.ndarray]:
-    """The take on a uniform grid: ``(dt, X)``.
+def uniform(t: Any, values: Any) -> tuple[float, np.ndarray]:
+    """The take on a uniform grid: ``(dt, values)``.
 
     Sorts the samples and drops repeated stamps; if the steps are not uniform (relative spread above
     :data:`UNIFORM_TOL`) every channel is linearly resampled at the median step.
@@ -54,7 +55,7 @@ def uniform(t: Any, X: Any) -> tuple[float, np.ndarray]:
     Raises:
         ValueError: bad shapes or fewer than 4 distinct stamps.
     """
-    t, x = _as_arrays(t, X)
+    t, x = _as_arrays(t, values)
     order = np.argsort(t, kind="stable")
     t, x = t[order], x[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
@@ -131,12 +132,12 @@ def acf_peak_lag(acf: np.ndarray, share: float = ACF_PEAK_SHARE) -> float:
     return zc + p + float(np.clip(off, -0.5, 0.5))
 
 
-def acf_period(t: Any, X: Any) -> float:
-    """FFT autocorrelation period estimate (the §1.5 peer), seconds; NaN if there is no peak.
+def acf_period(t: Any, values: Any) -> float:
+    """FFT autocorrelation period estimate (the frequency-analysis peer), seconds; NaN if there is no peak.
 
     Args:
         t: sample times, seconds, ``(n,)``; irregular stamps are resampled at their median step.
-        X: ``(n, C)`` or ``(n,)`` values in any units.
+        values: ``(n, C)`` or ``(n,)``, in any units.
 
     Returns:
         The period in seconds, or NaN when the autocorrelation has no usable peak (no zero crossing,
@@ -145,7 +146,7 @@ def acf_period(t: Any, X: Any) -> float:
     Raises:
         ValueError: bad shapes or fewer than 4 distinct stamps.
     """
-    dt, x = uniform(t, X)
+    dt, x = uniform(t, values)
     return acf_peak_lag(summed_acf(x)) * dt
 
 
@@ -155,7 +156,7 @@ def have_stumpy() -> bool:
 
 
 def _mstump_profile(x: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    import stumpy  # noqa: PLC0415 - lazy: optional, and importing it loads numba
+    import stumpy  # lazy: optional, and importing it loads numba
 
     prof, nn = stumpy.mstump(np.ascontiguousarray(x.T), m)
     return np.asarray(prof[-1]), np.asarray(nn[-1])
@@ -198,7 +199,7 @@ def mstump_window(dt: float, n: int, window_s: float = MSTUMP_WINDOW_S) -> int:
     return int(max(4, min(round(window_s / dt), n // 4)))
 
 
-def mstump_period(t: Any, X: Any, m: int | None = None) -> float:
+def mstump_period(t: Any, values: Any, m: int | None = None) -> float:
     """Matrix-profile period estimate with ``stumpy.mstump``, seconds; NaN if stumpy is missing or no period.
 
     The take is put on a uniform grid (as :func:`acf_period`), then ``stumpy.mstump`` computes the
@@ -212,7 +213,7 @@ def mstump_period(t: Any, X: Any, m: int | None = None) -> float:
 
     Args:
         t: sample times, seconds, ``(n,)``.
-        X: ``(n, C)`` or ``(n,)`` values.
+        values: ``(n, C)`` or ``(n,)``.
         m: subsequence length in samples (default 0.5 s).
 
     Returns:
@@ -223,7 +224,7 @@ def mstump_period(t: Any, X: Any, m: int | None = None) -> float:
     """
     if not have_stumpy():
         return float("nan")
-    dt, x = uniform(t, X)
+    dt, x = uniform(t, values)
     z = _standardised(x)
     n = z.shape[0]
     if m is None:
