@@ -100,3 +100,15 @@ def test_a_registry_entry_that_is_not_a_transport_class_is_unavailable(monkeypat
     monkeypatch.setitem(transports.TRANSPORTS, "broken", target)
     with pytest.raises(DeviceUnavailableError, match="broken://"):
         transports.transport_class("broken")
+
+
+@pytest.mark.parametrize("url,match", [
+    ("synth://imu?rate=nan", "not NUMBER"),
+    ("synth://imu?latency_ms=inf", "not NUMBER"),
+    ("synth://imu?jitter_ms=-inf", "not NUMBER"),
+    ("synth://imu?seed=-1", "at least 0"),
+    ("synth://[::1", "invalid transport URL"),
+])
+def test_bad_option_values_and_urls_are_config_errors(url, match):
+    with pytest.raises(ConfigError, match=match):
+        open_device(url)

@@ -4,14 +4,17 @@ errors counted with resync, strict mode, cycle assembly, and real motion from a 
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from capture.app.orchestrator import Capture
 from capture.errors import EndOfStream, ProtocolError
 from capture.sample import Chunk, Sample
+from capture.session import SessionReader
 from devices import open_device
 from devices.codecs.witmotion import ACC, ANGLE, GYRO, WitMotionCodec, WitPacket
 from devices.codecs.witmotion import TIME as TIME_T
@@ -156,3 +159,13 @@ def test_encode_many_equals_encode(pk):
     types = np.array([t for t, _ in pk], np.uint8)
     payloads = np.frombuffer(b"".join(p for _, p in pk), np.uint8).reshape(len(pk), 8)
     assert WitMotionCodec.encode_many(types, payloads).tobytes() == b"".join(c.encode(WitPacket(t, p)) for t, p in pk)
+
+
+def test_last_pending_cycle_of_a_take_is_emitted(tmp_path):
+    """A device that sent one cycle and vanished: the cycle is not lost at the end of the take."""
+    s = tmp_path / "s.mcap"
+    # one cycle only: nothing after it tells the device the cycle is complete
+    Capture(["a=synth://imu?rate=100&realtime=false&duration=0.005"], output=str(s), fsync=False).run(None)
+    r = SessionReader(str(s))
+    assert len(r.samples("a/imu")) == 1 and len(r.samples("a/euler")) == 1
+    assert os.path.getsize(s) > 0

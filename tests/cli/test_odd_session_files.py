@@ -1,19 +1,17 @@
-"""Regressions for defects found in review: odd paths and URLs, non-finite options, damaged
-sessions, detached subscribers in reports, early-stopped replays, a take's last pending cycle."""
+"""The commands on session files that are damaged, are not sessions at all, or have odd names: paths
+with spaces and URL characters replay; flipped bytes are read around (info, export, replay), never a
+traceback; text and empty files are said not to be MCAP; an export target that cannot be written is
+one clear line."""
 
 from __future__ import annotations
 
-import json
-import os
 import random
 
 import pytest
 from cli_helpers import run
 
-from capture.errors import ConfigError
 from capture.app.orchestrator import Capture
 from capture.session import SessionReader
-from devices import open_device
 
 FAST = "realtime=false&duration=2"
 
@@ -25,18 +23,6 @@ def test_replay_paths_with_spaces_and_url_characters(tmp_path, capsys, name):
     Capture([f"a=synth://imu?{FAST}"], output=str(path), fsync=False).run(None)
     code, out, err = run(capsys, "replay", str(path), "--fast", "-q")
     assert code == 0 and "equal the recorded ones" in out, err
-
-
-@pytest.mark.parametrize("url,match", [
-    ("synth://imu?rate=nan", "not NUMBER"),
-    ("synth://imu?latency_ms=inf", "not NUMBER"),
-    ("synth://imu?jitter_ms=-inf", "not NUMBER"),
-    ("synth://imu?seed=-1", "at least 0"),
-    ("synth://[::1", "invalid transport URL"),
-])
-def test_bad_option_values_and_urls_are_config_errors(url, match):
-    with pytest.raises(ConfigError, match=match):
-        open_device(url)
 
 
 def test_damaged_session_is_read_around_the_damage(tmp_path, capsys):
@@ -81,23 +67,3 @@ def test_export_events_file_that_is_a_directory(tmp_path, capsys):
     (d / "_events.csv").mkdir(parents=True)
     code, _, err = run(capsys, "export", str(s), "--format", "csv", "-o", str(d), "--overwrite")
     assert code == 2 and "cannot write" in err
-
-
-def test_paced_replay_stopped_early_is_not_a_mismatch(tmp_path, capsys):
-    s = tmp_path / "s.mcap"
-    Capture(["a=synth://imu?rate=100&realtime=false&duration=3"], output=str(s), fsync=False).run(None)
-    code, out, err = run(capsys, "replay", str(s), "--duration", "0.4", "-q", "--json")
-    assert code == 0, err
-    r = json.loads(out)
-    assert r["stopped_early"] and 0.2 < r["replayed_s"] < 0.6 and r["recorded_s"] > 2.9
-    assert all(v["mismatches"] == 0 for v in r["verification"]["streams"].values())
-
-
-def test_last_pending_cycle_of_a_take_is_emitted(tmp_path):
-    """A device that sent one cycle and vanished: the cycle is not lost at the end of the take."""
-    s = tmp_path / "s.mcap"
-    # one cycle only: nothing after it tells the device the cycle is complete
-    Capture(["a=synth://imu?rate=100&realtime=false&duration=0.005"], output=str(s), fsync=False).run(None)
-    r = SessionReader(str(s))
-    assert len(r.samples("a/imu")) == 1 and len(r.samples("a/euler")) == 1
-    assert os.path.getsize(s) > 0
