@@ -374,7 +374,15 @@ class Device(abc.ABC, Generic[CodecT]):
             if dom.pseudo:
                 devs, bus = dom.stamp(t, None, len(readings))
             else:
-                devs, bus = dom.stamp(t, self._ticks_of(readings), send_ticks=send_ticks)
+                last_ticks = self._last_ticks
+                ticks: list[int] = []
+                for r in readings:  # _ticks_of, inline on the common path
+                    tk = r.ticks
+                    if tk is None:
+                        tk = self._fill_ticks(r.stream)
+                    last_ticks[r.stream] = tk
+                    ticks.append(tk)
+                devs, bus = dom.stamp(t, ticks, send_ticks=send_ticks)
             ep = dom.epoch
             if ep != self._domain_epochs[0]:
                 self._epoch_changed(0, ep, t, out)
@@ -471,17 +479,20 @@ class Device(abc.ABC, Generic[CodecT]):
         out: list[int] = []
         for r in readings:
             tk = r.ticks
-            si = r.stream
             if tk is None:
-                self.stats.missing_time += 1
-                last = last_ticks[si]
-                tk = (0 if last is None else last) + self._tick_steps[si]
-                wrap = self._tick_wraps[si]
-                if wrap:
-                    tk %= wrap
-            last_ticks[si] = tk
+                tk = self._fill_ticks(r.stream)
+            last_ticks[r.stream] = tk
             out.append(tk)
         return out
+
+    def _fill_ticks(self, si: int) -> int:
+        """Ticks for a reading of stream ``si`` that lacks them: the previous ones plus one nominal
+        period (wrapped), counted in ``stats.missing_time``."""
+        self.stats.missing_time += 1
+        last = self._last_ticks[si]
+        tk = (0 if last is None else last) + self._tick_steps[si]
+        wrap = self._tick_wraps[si]
+        return tk % wrap if wrap else tk
 
     def _emit_batch(self, chunks: ChunkRun, batch: BatchReadings) -> list[Any]:
         """``_stamp_readings`` for a decoded run of chunks, with numpy: the raw chunks, then per
