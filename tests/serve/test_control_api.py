@@ -150,6 +150,21 @@ def test_record_start_rejects_a_bad_body(served, data, what):
     assert served.service.capture.recorder is None
 
 
+def test_control_api_checks_its_arguments(served, tmp_path):
+    assert served.api("POST", "/record/start", body={"path": "a.mcap", "overwrite": "false"})[0] == 400
+    assert served.api("POST", "/record/start", body={"path": "../../etc/x.mcap"})[0] == 400
+    assert served.api("POST", "/record/start", body={"path": "/tmp/elsewhere.mcap"})[0] == 400
+    assert served.api("POST", "/record/start", body={"path": "no/such/dir/a.mcap"})[0] in (400, 500)
+    for bad in ({"host": "127.0.0.1", "port": 8080, "name": 5}, {"host": "127.0.0.1", "port": True},
+                {"host": "127.0.0.1", "port": 8080, "types": "accelerometer&open_timeout=0.1"},
+                {"host": "a b", "port": 8080}, {"host": "127.0.0.1", "port": 70000}):
+        assert served.api("POST", "/sensorserver", body=bad)[0] == 400, bad
+    assert served.service.capture.devices == []  # nothing was added behind a refusal
+    code, ans = served.api("POST", "/record/start", body={"path": "inside.mcap"})
+    assert code == 200 and ans["recording"] == os.path.realpath(tmp_path / "inside.mcap")
+    assert served.api("POST", "/record/stop")[0] == 200
+
+
 def test_sensorserver_endpoint_connects_a_phone(served, fake_sensorserver, tmp_path):
     """Needs devices/phone_apps.py (kind ``sensorserver``)."""
     for bad in ({"host": "127.0.0.1"}, {"port": 8080}, {"host": 5, "port": 8080}, {"host": "127.0.0.1", "port": "80"}):

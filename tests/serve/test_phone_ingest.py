@@ -13,16 +13,21 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import socket
 import ssl
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+from serve_helpers import DEADLINE_S, wait_until
 
+from capture.app.serve.security import AllowList
 from capture.session import SessionReader
 from sim_devices.motion import G
+from sim_devices.phone_apps_sim import hyperimu_rows
 from sim_devices.phone_sim import dispel_samples, dispel_to_sensorlogger, page_messages
 
 TRACE = (Path(__file__).resolve().parents[2] / ".." / "shared" / "traces" / "e_smartphone"
@@ -138,6 +143,36 @@ def test_reconnecting_phone_keeps_its_device_and_loses_nothing(served, tmp_path)
     assert [json.loads(c.data)["type"] for c in chunks].count("hello") == 2
     # the simulator's own count of motion events sent (printed by `perfcap demo`)
     assert ph.events == n, f"SimPagePhone.events says {ph.events}, but it sent {n} motion events"
+
+
+def test_an_older_hyperimu_tcp_socket_closing_does_not_disconnect_the_phone(serve):
+    served = serve(hyperimu_allow="127.0.0.1")
+    svc = served.service
+    # a free port for HyperIMU TCP, opened through the gateway itself (in config 0 means off)
+    fut = asyncio.run_coroutine_threadsafe(
+        svc.gateway.start_tcp("hyperimu", "127.0.0.1", 0, AllowList("127.0.0.1")), svc._loop)
+    port = fut.result(DEADLINE_S)
+    rows = hyperimu_rows([[0, 0, 9.8, 0.1, 0.2, 0.3, 10, 20, 30]] * 5)
+    with socket.create_connection(("127.0.0.1", port)) as old, contextlib.ExitStack() as later:
+        old.sendall(rows)
+        wait_until(lambda: svc.phones.hub.get("hyperimu/127.0.0.1") is not None, DEADLINE_S, "the phone")
+        box = svc.phones.hub.get("hyperimu/127.0.0.1")
+        new = later.enter_context(socket.create_connection(("127.0.0.1", port)))
+        wait_until(lambda: box.connects == 2, DEADLINE_S, "the phone's new socket")
+        # the phone reconnected; its old socket goes away later: once the service has closed its end
+        # too, it has seen the old one leave
+        old.shutdown(socket.SHUT_WR)
+        old.settimeout(DEADLINE_S)
+        try:
+            assert old.recv(1) == b""
+        except ConnectionResetError:
+            pass
+        assert box.connected
+        n = box.received
+        new.sendall(rows)
+        wait_until(lambda: box.received > n, DEADLINE_S, "the rows on the new socket")
+        assert box.connected
+    wait_until(lambda: not box.connected, DEADLINE_S, "the disconnect of the newest socket")
 
 
 def test_sensorlogger_push_of_the_real_iphone_trace_arrives_complete(served, trace, tmp_path):

@@ -125,6 +125,19 @@ def test_hello_with_token_but_bad_id_is_malformed(served):
     assert served.service.capture.devices == []
 
 
+def test_a_hello_nested_beyond_the_json_parser_is_counted_as_malformed(served):
+    async def go() -> tuple[object, object]:
+        async with served.client() as s:
+            ws = await s.ws_connect(served.ws_url, ssl=served.ssl(), heartbeat=None)
+            await ws.send_str("[" * 60000)
+            msg = await ws.receive(timeout=10)
+            await ws.close()
+            return msg.type.name, msg.data
+
+    assert asyncio.run(go()) == ("CLOSE", CLOSE_MALFORMED)
+    assert served.rejected() == {"malformed hello": 1}
+
+
 def test_accepted_hello_is_recorded_without_the_token(served, tmp_path):
     path = str(tmp_path / "hello.mcap")
     served.service.start_recording(path)
@@ -514,6 +527,17 @@ def test_token_store_rules(tmp_path):
     (tmp_path / "c" / TOKEN_FILE).write_text("short\n")
     made = TokenStore(tmp_path / "c")
     assert made.created and len(made.token) >= 16  # a too-short stored token is replaced
+
+
+def test_a_rotation_that_cannot_be_stored_keeps_the_old_token(tmp_path):
+    state = tmp_path / "state"
+    store = TokenStore(state)
+    old = store.token
+    (state / "pairing-token.tmp").mkdir()  # where the new token would be written: not writable, even as root
+    with pytest.raises(ConfigError, match="cannot store the pairing token"):
+        store.rotate()
+    assert store.token == old and store.check(old) and store.generation == 0
+    assert (state / "pairing-token").read_text().strip() == old
 
 
 # -- the TLS certificate ----------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """``perfcap serve`` as a user runs it: a subprocess that prints how to pair and stops on its own,
-stops on SIGTERM with everything a phone sent recorded, and refuses bad flags with one line."""
+stops on SIGTERM with everything a phone sent recorded, records from its first sample with
+``--record``, and refuses bad flags with one line and bad phone options at start."""
 
 from __future__ import annotations
 
@@ -16,9 +17,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
+from serve_helpers import TOKEN
 
+from capture.app.serve.config import ServeConfig
 from capture.app.serve.security import TOKEN_FILE
+from capture.app.serve.service import Service
 from capture.app.serve.tls import CERT_FILE
+from capture.errors import ConfigError
 from capture.session import SessionReader
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -169,3 +175,26 @@ def test_a_malformed_flag_is_one_line_naming_the_flag(tmp_path):
     assert p.returncode == 2 and "Traceback" not in p.stderr and p.stdout == ""
     assert re.fullmatch(r"perfcap: error: command line: option --port='eighty' is not INT", p.stderr.strip()), p.stderr
     assert not (tmp_path / "st").exists()
+
+
+def test_bad_phone_options_are_an_error_at_start(tmp_path):
+    with pytest.raises(ConfigError, match="osc"):
+        Service(ServeConfig(host="127.0.0.1", port=0, control_port=-1, mdns=False, state_dir=str(tmp_path),
+                            token=TOKEN, osc_port=9, osc_allow="127.0.0.1", osc_map="zigsimm"))
+    with pytest.raises(ConfigError, match="hyperimu"):
+        Service(ServeConfig(host="127.0.0.1", port=0, control_port=-1, mdns=False, state_dir=str(tmp_path),
+                            token=TOKEN, hyperimu_port=9, hyperimu_allow="127.0.0.1", hyperimu_sensors="accel"))
+    with pytest.raises(ConfigError, match="already names"):
+        Service(ServeConfig(host="127.0.0.1", port=0, control_port=-1, mdns=False, state_dir=str(tmp_path),
+                            token=TOKEN, names={"page/x": "wrist"}), ["wrist=synth://imu?realtime=false"])
+
+
+def test_serve_record_has_the_first_samples(tmp_path):
+    out = tmp_path / "take.mcap"
+    p = subprocess.run([sys.executable, "-m", "capture.app.cli", "serve", "--port", "0", "--control-port", "-1",
+                        "--no-mdns", "--state-dir", str(tmp_path / "st"), "--duration", "1.5", "-q",
+                        "--record", str(out), "-d", "imu=synth://imu?rate=100&seed=3"],
+                       capture_output=True, text=True, timeout=60, cwd=Path(__file__).parent)
+    assert p.returncode == 0, p.stderr
+    b = SessionReader(str(out)).samples("imu/imu")
+    assert len(b) > 50 and int(b.seq[0]) == 0
