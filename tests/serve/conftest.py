@@ -20,21 +20,22 @@ import math
 import threading
 import urllib.error
 import urllib.request
-from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
+from serve_helpers import CURRENT, DEADLINE_S, TOKEN, free_port, wait_until
 
 from capture.app.serve.config import Limits, ServeConfig
 from capture.app.serve.service import Service, ServiceThread
 from sim_devices.phone_client import PhoneThread, SimPagePhone
 from sim_devices.phone_sim import page_hello
 
-log = logging.getLogger(__name__)
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator, Callable, Iterator
+    from pathlib import Path
 
-from serve_helpers import CURRENT, TOKEN, free_port, wait_until
+log = logging.getLogger(__name__)
 
 PhoneRunner = PhoneThread  # a simulated phone on its own event loop in a thread
 
@@ -83,7 +84,7 @@ class Served:
 
     # -- control API -----------------------------------------------------------------------------
     def api(self, method: str, path: str, *, token: Any = CURRENT, body: Any = None, data: bytes | None = None,
-            auth: str | None = None, timeout: float = 10.0) -> tuple[int, Any]:
+            auth: str | None = None, timeout: float = DEADLINE_S) -> tuple[int, Any]:
         """One control API request (``path`` after ``/api``); returns (status, decoded JSON)."""
         headers = {}
         if auth is not None:
@@ -130,7 +131,7 @@ class Served:
         ws = await session.ws_connect(self.ws_url, ssl=self.ssl(), autoping=True, heartbeat=None)
         tok = self.token if token is CURRENT else token
         await ws.send_str(page_hello(phone_id, token=tok).decode())
-        return ws, await ws.receive(timeout=10)
+        return ws, await ws.receive(timeout=DEADLINE_S)
 
     def samples(self, stream: str) -> int:
         """Samples of ``stream`` the bus has carried so far."""
@@ -156,11 +157,11 @@ class Served:
             try:
                 if phones_first:
                     for ph in self.phones:
-                        ph.stop(10.0)
+                        ph.stop(DEADLINE_S)
             finally:
                 self.report = self.thread.stop()
         for ph in self.phones:
-            ph.stop(10.0)
+            ph.stop(DEADLINE_S)
         return self.report
 
 
@@ -255,7 +256,7 @@ class FakeSensorServer:
 
     def start(self) -> FakeSensorServer:
         self._thread.start()
-        if not self._ready.wait(10):
+        if not self._ready.wait(DEADLINE_S):
             raise RuntimeError("the fake SensorServer did not start")
         return self
 
@@ -263,7 +264,7 @@ class FakeSensorServer:
         if self._loop is not None and self._stop is not None and self._thread.is_alive():
             with contextlib.suppress(RuntimeError):
                 self._loop.call_soon_threadsafe(self._stop.set)
-        self._thread.join(10)
+        self._thread.join(DEADLINE_S)
 
 
 @pytest.fixture

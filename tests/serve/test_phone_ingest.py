@@ -62,13 +62,13 @@ def test_page_phone_motion_arrives_complete_exact_and_on_time(served, tmp_path):
     path = str(tmp_path / "page.mcap")
     served.service.start_recording(path)
     th = served.phone("ingest-phone", duration_s=3.0)
-    assert th.join(15)
+    assert th.join(DEADLINE_S)
     ph = th.phone
     assert ph.error is None and ph.sent == len(ph.messages) and ph.connects == 1
     motion = _rows(ph)
     n = len(motion)
     assert n == 180  # 3 s of 60 Hz
-    served.wait(lambda: served.samples(f"{ph.device}/imu") == n, 5, "every motion event on the bus")
+    served.wait(lambda: served.samples(f"{ph.device}/imu") == n, DEADLINE_S, "every motion event on the bus")
     dev = served.device(ph.device)
     h = dev.health()
     assert (h["lost_messages"], h["seq_restarts"], h["hellos"], h["framing_errors"]) == (0, 0, 1, 0)
@@ -104,10 +104,10 @@ def test_page_orientation_shares_the_motion_clock(served, tmp_path):
     path = str(tmp_path / "orient.mcap")
     served.service.start_recording(path)
     th = served.phone("orient-phone", duration_s=2.0)
-    assert th.join(15) and th.phone.error is None
+    assert th.join(DEADLINE_S) and th.phone.error is None
     ph = th.phone
     orient = _rows(ph, "orientation")
-    served.wait(lambda: served.samples(f"{ph.device}/attitude") == len(orient), 5, "every orientation event")
+    served.wait(lambda: served.samples(f"{ph.device}/attitude") == len(orient), DEADLINE_S, "every orientation event")
     served.stop()
     att = SessionReader(path).samples(f"{ph.device}/attitude")
     assert len(att) == len(orient) == 40
@@ -122,12 +122,12 @@ def test_reconnecting_phone_keeps_its_device_and_loses_nothing(served, tmp_path)
     path = str(tmp_path / "drop.mcap")
     served.service.start_recording(path)
     th = served.phone("wobbly-phone", duration_s=2.5, drop_at_s=1.0, drop_for_s=0.4)
-    assert th.join(15)
+    assert th.join(DEADLINE_S)
     ph = th.phone
     assert ph.error is None and ph.connects == 2 and ph.sent == len(ph.messages)
     motion = _rows(ph)
     n = len(motion)
-    served.wait(lambda: served.samples(f"{ph.device}/imu") == n, 5, "every motion event on the bus")
+    served.wait(lambda: served.samples(f"{ph.device}/imu") == n, DEADLINE_S, "every motion event on the bus")
     assert [d.name for d in served.service.capture.devices] == [ph.device] == ["phone-wobblyph"]
     box = served.service.phones.hub.get("page/wobbly-phone")
     assert box.connects == 2 and box.dropped == 0
@@ -240,13 +240,13 @@ def test_stop_records_everything_received_up_to_the_stop(served, tmp_path):
             stopper = threading.Thread(target=served.stop, kwargs={"phones_first": False})
             stopper.start()
             while True:  # the service says it is shutting down
-                m = await ws.receive(timeout=10)
+                m = await ws.receive(timeout=DEADLINE_S)
                 if m.type.name != "TEXT":
                     break
             await ws.close()
             await asyncio.to_thread(stopper.join, 30)
 
-    served.wait(lambda: served.samples("phone-steadyph/imu") >= 60, 10, "the steady phone streaming")
+    served.wait(lambda: served.samples("phone-steadyph/imu") >= 60, DEADLINE_S, "the steady phone streaming")
     asyncio.run(go())
     assert served.report is not None  # stopped, with its capture report
     steady_box = served.service.phones.hub.get("page/steady-phone")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serve_helpers import TOKEN
+from serve_helpers import DEADLINE_S, TOKEN
 
 from capture.app.serve.config import ServeConfig
 from capture.app.serve.security import TOKEN_FILE
@@ -56,11 +56,11 @@ def test_serve_prints_pairing_details_and_stops_after_duration(tmp_path):
     state = tmp_path / "state"
     t0 = time.monotonic()
     p = subprocess.run([*SERVE, "--state-dir", str(state), "--duration", "3"], cwd=ROOT, env=_env(tmp_path),
-                       capture_output=True, text=True, timeout=60, check=False)
+                       capture_output=True, text=True, timeout=300, check=False)
     elapsed = time.monotonic() - t0
-    assert p.returncode == 0, p.stderr
+    assert p.returncode == 0, p.stderr  # it stopped on its own (the subprocess timeout is only a deadline)
     assert "Traceback" not in p.stderr
-    assert 3.0 <= elapsed < 30.0
+    assert elapsed >= 3.0  # not before --duration
     token = (state / TOKEN_FILE).read_text().strip()
     page = _field(p.stdout, "phone page")
     m = re.fullmatch(r"https://([^/:]+):(\d+)/", page)
@@ -80,7 +80,7 @@ def _lines(stream, q: queue.Queue) -> None:
     q.put(None)
 
 
-def _ready_banner(q: queue.Queue, timeout: float = 30.0) -> str:
+def _ready_banner(q: queue.Queue, timeout: float = DEADLINE_S) -> str:
     """stdout up to the line that says the service is ready."""
     text = ""
     end = time.monotonic() + timeout
@@ -106,10 +106,10 @@ def test_sigterm_while_a_phone_streams_keeps_everything_it_sent(tmp_path, sim_ph
             fp = _field(banner, "TLS certificate SHA-256")
             url = page.replace("https://", "wss://") + "ws/phone"
             phone = sim_phone(url, token, "cli-phone", duration_s=30.0, fingerprint=fp).phone
-            wait_until(lambda: phone.sent >= 25, 15, "the phone streaming")
+            wait_until(lambda: phone.sent >= 25, DEADLINE_S, "the phone streaming")
             sent_before = phone.sent  # every one of these must be in the session
             proc.send_signal(signal.SIGTERM)
-            rc = proc.wait(timeout=30)
+            rc = proc.wait(timeout=DEADLINE_S)
             err = proc.stderr.read()
         finally:
             if proc.poll() is None:
@@ -193,8 +193,9 @@ def test_serve_record_has_the_first_samples(tmp_path):
     out = tmp_path / "take.mcap"
     p = subprocess.run([sys.executable, "-m", "capture.app.cli", "serve", "--port", "0", "--control-port", "-1",
                         "--no-mdns", "--state-dir", str(tmp_path / "st"), "--duration", "1.5", "-q",
-                        "--record", str(out), "-d", "imu=synth://imu?rate=100&seed=3"],
-                       capture_output=True, text=True, timeout=60, cwd=Path(__file__).parent)
+                        "--record", str(out), "-d", "imu=synth://imu?rate=100&seed=3&realtime=false&duration=1"],
+                       capture_output=True, text=True, timeout=300, check=False, cwd=Path(__file__).parent)
     assert p.returncode == 0, p.stderr
+    # the device sends its 100 readings as soon as it is read: a recorder attached late would miss them
     b = SessionReader(str(out)).samples("imu/imu")
-    assert len(b) > 50 and int(b.seq[0]) == 0
+    assert b.seq.tolist() == list(range(100))
