@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+from wait_helpers import DEADLINE_S, wait_until
 
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared"
 TRACES = SHARED / "traces"
@@ -21,7 +22,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--hil-serial", default=None, metavar="PORT",
                      help="a serial IMU port for HIL tests (e.g. /dev/ttyUSB0); same as --hil-device=witmotion@serial://PORT")
     parser.addoption("--hil-controller", default=None, metavar="VID:PID",
-                     help="a motion controller for HID HIL tests (054c:0ce6 DualSense, 054c:05c4 DS4, 057e:2009 Switch Pro)")
+                     help="a motion controller for HID HIL tests "
+                          "(054c:0ce6 DualSense, 054c:05c4 DS4, 057e:2009 Switch Pro)")
     parser.addoption("--hil-mouse", default=None, metavar="VID:PID", help="a mouse for HID HIL tests (move it)")
     parser.addoption("--hil-tablet", default=None, metavar="VID:PID", help="a pen tablet for HID HIL tests (draw)")
 
@@ -70,7 +72,7 @@ def xio_csv() -> Path:
 def _no_leaked_threads():
     """Every test must stop its device readers and bus subscribers."""
     yield
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + DEADLINE_S
     while True:
         left = [t.name for t in threading.enumerate() if t.name.startswith(("reader-", "bus-")) and t.is_alive()]
         if not left or time.monotonic() > deadline:
@@ -124,17 +126,15 @@ def _record_phone_session(path: Path, duration_s: float = 3.0, touch: tuple[floa
     for data, sent_ms in datas:
         box.put(Chunk(data, t0 + int(sent_ms * 1e6) + 20_000_000, Direction.RX))
 
-    def finish_when_read() -> None:
-        deadline = time.monotonic() + 10.0
-        while len(box) and time.monotonic() < deadline:
-            time.sleep(0.005)
-        time.sleep(0.05)
-        box.finish()
-
-    threading.Thread(target=finish_when_read, daemon=True).start()
+    cap = Capture([f"phone=phone@net://{name}/page/p1"], output=str(path), overwrite=True)
     try:
-        Capture([f"phone=phone@net://{name}/page/p1"], output=str(path), overwrite=True).run(30.0)
+        cap.start()
+        phone = cap.devices[0]
+        wait_until(lambda: phone.transport.is_open, DEADLINE_S, "the phone's reader to open its inbox")
+        box.finish()  # nothing more will come: the reader drains the inbox, then the take ends
+        assert all(r.join(DEADLINE_S) for r in cap.readers), "the phone's reader did not drain its inbox"
     finally:
+        cap.stop()
         drop_hub(name)
     return path
 

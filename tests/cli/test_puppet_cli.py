@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import one_line, run
+from wait_helpers import DEADLINE_S
 
 from capture.app.demo import demo_puppet
 from capture.app.orchestrator import Capture
@@ -99,10 +100,9 @@ def test_vmc_to_a_real_udp_receiver(tmp_path, capsys):
         port = sock.getsockname()[1]
         code, out, err = run(capsys, "puppet", "--input", walk_csv(tmp_path / "walk.csv"), "--rate", "30",
                              "--vmc", f"127.0.0.1:{port}")
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + DEADLINE_S  # the command said how many it sent: wait for those
         while len(got) < 181 and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.05)
     finally:
         done.set()
         th.join()

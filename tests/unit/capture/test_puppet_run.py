@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from wait_helpers import DEADLINE_S
 
 from capture.bus import Overflow, SampleBus
 from capture.errors import ConfigError
@@ -448,6 +449,7 @@ class Receiver:
 
     def __init__(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)  # room while this thread waits
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.05)
         self.port = self.sock.getsockname()[1]
@@ -463,11 +465,11 @@ class Receiver:
             except TimeoutError:
                 continue
 
-    def wait_for(self, n: int, timeout: float = 5.0) -> list[bytes]:
+    def wait_for(self, n: int, timeout: float = DEADLINE_S) -> list[bytes]:
+        """Stop once ``n`` datagrams came (the tests compare with what the sender counted as sent)."""
         deadline = time.monotonic() + timeout
         while len(self.datagrams) < n and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.05)   # nothing more should come
         self.done.set()
         self.thread.join()
         self.sock.close()

@@ -8,6 +8,7 @@ import pytest
 
 from capture.app.orchestrator import Capture
 from capture.app.replay import replay_session
+from capture.clock import ManualClock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError
 from capture.session import SessionReader
 from devices import open_device
@@ -118,19 +119,20 @@ def test_controller_imu_streams_feed_orientation_fusion(url, tmp_path):
 
 
 def test_a_reader_that_falls_behind_loses_the_oldest_reports_beyond_the_os_buffer_and_counts_them():
-    import time
-
-    t = SimHidTransport("mouse", {"buffer": 10, "truth": True})
+    clock = ManualClock()  # real-time pacing on a clock the test moves: the reader is away exactly 100 ms
+    t = SimHidTransport("mouse", {"buffer": 10, "truth": True}, clock=clock)
     t.open()
     assert t.read(0.5) is not None
-    time.sleep(0.1)  # the reader is away for about 100 reports at 1 kHz
+    clock.advance(100_000_000)  # the reader is away for 100 reports at 1 kHz
     got = [t.read(0.0) for _ in range(10)]
     assert all(c is not None for c in got)
-    assert 60 <= t.dropped <= 120, t.dropped
-    assert t.sent == len(t.arrival_ns) + t.dropped
+    assert t.read(0.0) is None  # nothing more has arrived yet
+    assert t.dropped == 100 - 10, t.dropped  # the OS buffer keeps 10
+    assert t.sent == len(t.arrival_ns) + t.dropped == 1 + 100
     # the ten kept are the newest, in order, each stamped when it was read (not when it arrived)
-    assert np.all(np.diff([c.t_ns for c in got]) >= 0)
+    assert [c.t_ns for c in got] == [clock.now_ns()] * 10
     assert got[0].t_ns >= t.arrival_ns[1]
+    assert t.arrival_ns[1:] == sorted(t.arrival_ns[1:]) and t.arrival_ns[1] > t.arrival_ns[0] + 80_000_000
     t.close()
 
 
