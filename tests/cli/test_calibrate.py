@@ -9,13 +9,14 @@ import json
 import numpy as np
 import pytest
 from cli_helpers import run
+from wait_helpers import DEADLINE_S, wait_until
 
 from capture.calibration_store import CalibrationStore
 from capture.app.orchestrator import CALIBRATION_KEY, Capture
 from capture.app.replay import replay_session
 from capture.sample import DeviceIdentity
 from capture.session import SessionReader
-from devices.base import ReconnectPolicy
+from devices.base import DeviceState, ReconnectPolicy
 from sim_devices.frames import WavingSource
 from sim_devices.serial_sim import PtySerialDevice
 
@@ -65,12 +66,28 @@ def test_orientation_uses_the_calibration_across_reconnects_and_replay(tmp_path)
     store.save(ident, ImuCalibration(gyro_bias=tuple(np.radians(BIAS_DPS))), note="test")
     out = str(tmp_path / "take.mcap")
     src = WavingSource("witmotion", 200.0, seed=3, gyro_bias_dps=BIAS_DPS)
-    with PtySerialDevice(src, unplug_every=1.0, unplug_for=0.2) as sim:
+    with PtySerialDevice(src) as sim:
         cap = Capture([f"wrist={sim.device_url()}"], output=out, reconnect=ReconnectPolicy(initial_s=0.02, max_s=0.1))
         proc = cap.enable_orientation("fusion", auto_bias=False, store=store)
         assert proc is not None
-        rep = cap.run(3.2)
-    assert rep.devices["wrist"]["reconnects"] >= 2
+        cap.start()
+        try:
+            dev = cap.devices[0]
+
+            def imu_samples() -> int:
+                return int(cap.stats.snapshot().get("wrist/imu", {}).get("samples", 0))
+
+            for k in range(2):  # unplugged twice, each time once the reader streams again
+                wait_until(lambda n=200 * (k + 1): imu_samples() >= n, DEADLINE_S, "a second of readings")
+                sim.unplug()
+                wait_until(lambda n=k + 1: sim.stats.unplugs == n and dev.state is not DeviceState.STREAMING,
+                           DEADLINE_S, "the reader to see the unplug")
+                sim.replug()
+                wait_until(lambda n=k + 1: dev.stats.reconnects == n, DEADLINE_S, "the reconnect")
+            wait_until(lambda: imu_samples() >= 600, DEADLINE_S, "three seconds of readings")
+        finally:
+            rep = cap.stop()
+    assert rep.devices["wrist"]["reconnects"] == 2
     rd = SessionReader(out)
     doc = json.loads(rd.devices["wrist"].descriptors[CALIBRATION_KEY])
     assert np.allclose(np.degrees(doc["calibration"]["gyro_bias_rad_s"]), BIAS_DPS)

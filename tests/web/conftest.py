@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import pytest
+from wait_helpers import DEADLINE_S
 
 if TYPE_CHECKING:
     from playwright.sync_api import Browser, Page
@@ -46,7 +47,7 @@ def browser() -> Iterator[Browser]:
 def page(browser: Browser) -> Iterator[Page]:
     """A fresh phone-like page (own context: empty storage, touch enabled, mobile viewport)."""
     context = browser.new_context(viewport=PHONE_VIEWPORT, is_mobile=True, has_touch=True, ignore_https_errors=True)
-    context.set_default_timeout(10_000)
+    context.set_default_timeout(DEADLINE_S * 1000)  # every wait: a deadline only a broken page reaches
     try:
         yield context.new_page()
     finally:

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from typing import Any
 
 import pytest
+from wait_helpers import DEADLINE_S, wait_until
 
 from capture.bus import Subscriber
 from capture.sample import Sample, SampleBatch
@@ -49,14 +49,8 @@ def service(tmp_path):
     th.stop()
 
 
-def wait_for(what: str, cond: Any, timeout: float = 10.0) -> Any:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+def wait_for(what: str, cond: Any) -> Any:
+    return wait_until(cond, DEADLINE_S, what)
 
 
 MOTION_JS = """(vals) => {

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
+from wait_helpers import DEADLINE_S
 from aiohttp import WSMsgType, web
 
 if TYPE_CHECKING:
@@ -59,10 +60,10 @@ class ProtocolServer:
             self._call(self._stop())
         finally:
             self._loop.call_soon_threadsafe(self._loop.stop)
-            self._thread.join(5)
+            self._thread.join(DEADLINE_S)
             self._loop.close()
 
-    def _call(self, coro: Any, timeout: float = 10.0) -> Any:
+    def _call(self, coro: Any, timeout: float = DEADLINE_S) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
 
     async def _start(self) -> None:
@@ -93,10 +94,11 @@ class ProtocolServer:
         with self._cond:
             self.connections += 1
             conn = self.connections
+            self._cond.notify_all()
         if self.hold:
             await ws.close(code=1013, message=b"try again later")
             return ws
-        first = await ws.receive(timeout=5)
+        first = await ws.receive(timeout=DEADLINE_S)
         if first.type != WSMsgType.TEXT:
             await ws.close(code=4400, message=b"expected hello")
             return ws
@@ -138,7 +140,7 @@ class ProtocolServer:
         self._ws = None
         self._call(ws.close(code=code, message=b"server-side drop"))
 
-    def wait(self, what: str, pred: Callable[[list[tuple[int, str]]], Any], timeout: float = 5.0) -> Any:
+    def wait(self, what: str, pred: Callable[[list[tuple[int, str]]], Any], timeout: float = DEADLINE_S) -> Any:
         """Wait until ``pred(messages)`` is truthy and return its value."""
         with self._cond:
             out = self._cond.wait_for(lambda: pred(list(self.messages)), timeout)
@@ -154,7 +156,7 @@ class ProtocolServer:
         return [row for _, m in self.of_type("data") for row in m.get(key, [])]
 
 
-def wait_rows(server: ProtocolServer, key: str, n: int, timeout: float = 5.0) -> list[list[Any]]:
+def wait_rows(server: ProtocolServer, key: str, n: int, timeout: float = DEADLINE_S) -> list[list[Any]]:
     return server.wait(f"{n} {key!r} rows", lambda _: len(server.rows(key)) >= n and server.rows(key), timeout)
 
 
@@ -356,16 +358,14 @@ def test_reconnect_sends_the_queued_rows_with_continuing_seq(server, page, conso
     server.drop(1001)
     page.wait_for_function("window.perfcap.state !== 'live'")
     second = motion_values(100, 6)
-    for v in second:  # several batches while offline
+    for i, v in enumerate(second, 1):  # several batches while offline: each row in its own
         dispatch_motion(page, [v])
-        page.wait_for_timeout(60)
-    page.wait_for_function("window.perfcap.queued >= 2")
+        page.wait_for_function(f"window.perfcap.queued >= {i}")
     assert page.evaluate("window.perfcap.lastClose.code") in (1001, 1013)
-    page.wait_for_timeout(1200)  # at least one refused retry with backoff
-    assert server.connections >= 2
+    server.wait("a refused retry (with backoff)", lambda _: server.connections >= 2)
 
     server.hold = False
-    page.wait_for_function("window.perfcap.state === 'live'", timeout=10_000)
+    page.wait_for_function("window.perfcap.state === 'live'")
     rows = server.wait("the queued rows", lambda _: len(dispatched(server.rows("m"), second)) == 6
                        and dispatched(server.rows("m"), second))
     assert [r[1:] for r in rows] == second
@@ -418,7 +418,7 @@ def test_a_silent_server_is_left_and_rejoined(server, page, console_errors):
     """No ping for max(5 s, 4 x ping_s): the page assumes a dead link (Wi-Fi change) and reconnects."""
     server.ping_s = 1.0
     open_live(page, server)
-    page.wait_for_function("window.perfcap.lastClose !== null", timeout=8_000)
+    page.wait_for_function("window.perfcap.lastClose !== null")
     assert page.evaluate("window.perfcap.lastClose.text").startswith("no ping from perfcap serve")
     server.wait("a second hello", lambda _: len(server.of_type("hello")) >= 2)
     page.wait_for_function("window.perfcap.state === 'live'")
