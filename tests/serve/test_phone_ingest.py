@@ -18,6 +18,7 @@ import json
 import socket
 import ssl
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -231,9 +232,8 @@ def test_stop_records_everything_received_up_to_the_stop(served, tmp_path):
             for m in burst:
                 await ws.send_str(m.data.decode())
             box = served.service.phones.hub.get("page/burst-phone")
-            for _ in range(500):
-                if box.received == 1 + len(burst):
-                    break
+            deadline = time.monotonic() + DEADLINE_S
+            while box.received < 1 + len(burst) and time.monotonic() < deadline:
                 await asyncio.sleep(0.002)
             assert box.received == 1 + len(burst)
             backlog.append(len(box))  # received but not yet decoded when the stop comes
@@ -244,7 +244,7 @@ def test_stop_records_everything_received_up_to_the_stop(served, tmp_path):
                 if m.type.name != "TEXT":
                     break
             await ws.close()
-            await asyncio.to_thread(stopper.join, 30)
+            await asyncio.to_thread(stopper.join, DEADLINE_S)
 
     served.wait(lambda: served.samples("phone-steadyph/imu") >= 60, DEADLINE_S, "the steady phone streaming")
     asyncio.run(go())

@@ -4,12 +4,14 @@ giving exactly the per-chunk samples."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from wait_helpers import DEADLINE_S
 
 from capture.errors import ConfigError, ProtocolError
 from capture.sample import Chunk, ChunkRun, Sample, SampleBatch
@@ -97,10 +99,9 @@ def test_end_to_end_through_a_real_serial_transport(datasheet_frame):
     try:
         d.send(datasheet_frame)
         got: list[Sample] = []
-        for _ in range(100):
+        deadline = time.monotonic() + DEADLINE_S
+        while len(got) < 2 and time.monotonic() < deadline:
             got += [x for x in d.poll(0.05) if isinstance(x, Sample)]
-            if len(got) == 2:
-                break
     finally:
         d.close()
     assert [x.stream for x in got] == ["b/euler", "b/accel"]

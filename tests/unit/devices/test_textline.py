@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from wait_helpers import DEADLINE_S
 
 from capture.errors import ConfigError, ProtocolError
 from capture.sample import Chunk, ChunkRun, Sample, SampleBatch
@@ -84,10 +86,9 @@ def test_end_to_end_through_a_real_serial_transport():
     try:
         d.send(TextLineLayout(EXAMPLE).encode_line({"ax": G, "gz": -DEG}, t_device_s=1.5, decimals=4))
         got: list[Sample] = []
-        for _ in range(100):
+        deadline = time.monotonic() + DEADLINE_S
+        while not got and time.monotonic() < deadline:
             got += samples(d.poll(0.05), "s/imu")
-            if got:
-                break
     finally:
         d.close()
     assert len(got) == 1 and got[0].t_device_ns == 1_500_000_000
