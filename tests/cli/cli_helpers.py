@@ -12,7 +12,8 @@ def run(capsys: Any, *argv: str) -> tuple[int, str, str]:
     try:
         code = main(list(argv))
     except SystemExit as exc:   # argparse's usage errors
-        code = exc.code  # type: ignore[assignment]
+        # as the interpreter exits: None is 0, an int is itself, anything else (a message) is 1
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     o = capsys.readouterr()
     assert "Traceback" not in o.err and "Traceback" not in o.out, o.err
     return code, o.out, o.err
