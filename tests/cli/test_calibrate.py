@@ -11,9 +11,9 @@ import pytest
 from cli_helpers import run
 from wait_helpers import DEADLINE_S, wait_until
 
-from capture.calibration_store import CalibrationStore
 from capture.app.orchestrator import CALIBRATION_KEY, Capture
 from capture.app.replay import replay_session
+from capture.calibration_store import CalibrationStore
 from capture.sample import DeviceIdentity
 from capture.session import SessionReader
 from devices.base import DeviceState, ReconnectPolicy

@@ -40,7 +40,7 @@ def take():
 @pytest.fixture
 def take_csv(tmp_path, take):
     return write_csv(tmp_path / "take.csv", ["time_s", "a", "b", "c"],
-                     [[repr(float(t)), *map(repr, map(float, v))] for t, v in zip(take.t, take.values)])
+                     [[repr(float(t)), *map(repr, map(float, v))] for t, v in zip(take.t, take.values, strict=True)])
 
 
 def test_csv_in_json_out(take, take_csv, capsys):
@@ -103,7 +103,8 @@ def test_columns_pick_channels(take_csv, capsys):
 
 
 def test_headerless_csv_uses_the_first_column_as_time(take, tmp_path, capsys):
-    p = write_csv(tmp_path / "plain.csv", None, [[float(t), float(v[0])] for t, v in zip(take.t, take.values)])
+    p = write_csv(tmp_path / "plain.csv", None,
+                  [[float(t), float(v[0])] for t, v in zip(take.t, take.values, strict=True)])
     code, out, err = run(capsys, "cycle", p, "--json")
     assert code == 0, err
     s = json.loads(out)
@@ -261,7 +262,7 @@ def test_demo_extracts_the_wrists_cycle(tmp_path):
 
 @pytest.mark.parametrize("style", ["bom_no_header", "semicolons", "tabs", "trailing_comma", "sensor_logger"])
 def test_csv_dialects(take, tmp_path, capsys, style):
-    rows = [[float(t), *map(float, v)] for t, v in zip(take.t, take.values)]
+    rows = [[float(t), *map(float, v)] for t, v in zip(take.t, take.values, strict=True)]
     path = tmp_path / f"{style}.csv"
     if style == "bom_no_header":
         text = "\ufeff" + "\n".join(",".join(map(repr, r)) for r in rows) + "\n"

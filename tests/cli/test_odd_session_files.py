@@ -41,7 +41,7 @@ def test_damaged_session_is_read_around_the_damage(tmp_path, capsys):
         p.write_bytes(bytes(bad))
         for argv in (["info", str(p)], ["info", str(p), "--json"], ["replay", str(p), "--fast", "-q"],
                      ["export", str(p), "--format", "csv", "-o", str(tmp_path / f"e{k}")]):
-            code, out, err = run(capsys, *argv)
+            code, _out, err = run(capsys, *argv)
             assert code in (0, 1, 2), (argv, code, err)
             if code == 2:
                 assert err.startswith("perfcap: error:"), err

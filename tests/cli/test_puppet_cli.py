@@ -11,7 +11,7 @@ import os
 import socket
 import threading
 import time
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -24,6 +24,9 @@ from capture.session import SessionReader
 from retarget.bvh import read_bvh
 from retarget.skeleton import humanoid
 from retarget.vmc import decode_frame
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
 
@@ -195,7 +198,8 @@ def test_malformed_trajectories(tmp_path, capsys, content, message):
     (["--session", "{walk}"], "is not a session file (not MCAP)"),
     (["--input", "{walk}", "--vmc", "localhost"], "--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not 'localhost'"),
     (["--input", "{walk}", "--vmc", "127.0.0.1:99999"], "--vmc expects HOST:PORT"),
-    (["--input", "{walk}", "--vmc", "localhost:\u00b2"], "--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not 'localhost:\u00b2'"),
+    (["--input", "{walk}", "--vmc", "localhost:\u00b2"],
+     "--vmc expects HOST:PORT (e.g. 127.0.0.1:39539), not 'localhost:\u00b2'"),
     (["--input", "{walk}", "--vmc", "localhost:\u0663\u0663"], "--vmc expects HOST:PORT"),
     (["--input", "{walk}", "--vmc", "no-such-host.invalid:9"], "--vmc no-such-host.invalid:9: cannot resolve"),
     (["--input", "{walk}", "--rate", "0"], "--rate must be a frame rate in Hz between 0 and 1000, not 0.0"),

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import logging
 import shutil
-from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import pytest
 from wait_helpers import DEADLINE_S
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     from playwright.sync_api import Browser, Page
 
 log = logging.getLogger(__name__)
@@ -26,7 +27,8 @@ PHONE_VIEWPORT = {"width": 390, "height": 844}
 @pytest.fixture(scope="session")
 def browser() -> Iterator[Browser]:
     """One headless Chromium for the session (Debian's ``chromium``; skips when it is missing)."""
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed: pip install -e '.[test]'")
+    sync_api = pytest.importorskip("playwright.sync_api",
+                                   reason="playwright is not installed: pip install -e '.[test]'")
     exe = shutil.which("chromium")
     if exe is None:
         pytest.skip("chromium not found on PATH: install Debian's package (sudo apt-get install chromium); "

@@ -5,6 +5,7 @@ WebSocket, the gateway, the phone's inbox, the page codec and its device, and in
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from typing import Any
@@ -12,10 +13,10 @@ from typing import Any
 import pytest
 from wait_helpers import DEADLINE_S, wait_until
 
-from capture.bus import Subscriber
-from capture.sample import Sample, SampleBatch
 from capture.app.serve.config import ServeConfig
 from capture.app.serve.service import Service, ServiceThread
+from capture.bus import Subscriber
+from capture.sample import Sample, SampleBatch
 from capture.session import SessionReader
 
 TOKEN = "browser-test-token-0123456789"
@@ -91,14 +92,14 @@ def test_page_from_the_service_streams_to_the_bus_over_tls(service, page, consol
     imu = wait_for("30 imu samples", lambda: len(col.of("/imu")) >= 30 and col.of("/imu"))
     assert [s.stream for s in imu] == [f"{device}/imu"] * 30
     d2r = math.pi / 180.0
-    for s, v in zip(imu, vals):  # accelerationIncludingGravity, rotationRate deg/s -> rad/s about x, y, z
+    for s, v in zip(imu, vals, strict=True):  # accelerationIncludingGravity, rotationRate deg/s -> rad/s about x, y, z
         assert s.values == pytest.approx((v[3], v[4], v[5], v[6] * d2r, v[7] * d2r, v[8] * d2r))
     user = wait_for("user_acc", lambda: len(col.of("/user_acc")) >= 30 and col.of("/user_acc"))
     assert [tuple(s.values) for s in user] == [tuple(v[:3]) for v in vals]
     # device time = the event's timeStamp (the page's clock); bus times follow it in order
-    for s, (before, after) in zip(imu, times):  # event.timeStamp: made during dispatch (0.1 ms resolution)
+    for s, (before, after) in zip(imu, times, strict=True):  # event.timeStamp: made during dispatch (0.1 ms resolution)
         assert before * 1e6 - 1e5 <= s.t_device_ns <= after * 1e6 + 1e5
-    assert all(a.t_bus_ns <= b.t_bus_ns for a, b in zip(imu, imu[1:]))
+    assert all(a.t_bus_ns <= b.t_bus_ns for a, b in itertools.pairwise(imu))
     assert all(s.t_bus_ns <= s.t_host_ns for s in imu)
     att = wait_for("attitude", lambda: col.of("/attitude"))
     assert att[0].values == pytest.approx((12.5, -30.25, 5.5), abs=1e-9) or att[0].values[:3] == pytest.approx(

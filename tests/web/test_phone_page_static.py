@@ -11,15 +11,16 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
-from wait_helpers import DEADLINE_S
 from aiohttp import WSMsgType, web
+from wait_helpers import DEADLINE_S
 
 if TYPE_CHECKING:
+    from collections.abc import Callable, Iterator
+
     from playwright.sync_api import Page
 
 PAGE = Path(__file__).resolve().parents[2] / "capture" / "app" / "serve" / "static" / "phone.html"
@@ -317,7 +318,7 @@ def test_ping_is_answered_with_the_same_h(server, page, console_errors):
     open_live(page, server)
     t0 = page.evaluate("performance.now()")
     server.send({"type": "ping", "h": BIG_H})
-    conn, raw = server.wait("a pong", lambda msgs: next((m for m in msgs if '"pong"' in m[1]), None))
+    _conn, raw = server.wait("a pong", lambda msgs: next((m for m in msgs if '"pong"' in m[1]), None))
     assert f'"h":{BIG_H}' in raw.replace(" ", ""), "h must come back digit for digit"
     pong = json.loads(raw)
     assert pong["h"] == BIG_H and pong["type"] == "pong"

@@ -22,7 +22,7 @@ def simulate(jitter: str, *, rate=200.0, drift_ppm=100.0, seconds=30.0, tick_hz=
     bus_all, true_all = [], []
     for i in range(n):
         dev_s = i / rate
-        ticks = (dev0 + int(round(dev_s * tick_hz))) % wrap if wrap else dev0 + int(round(dev_s * tick_hz))
+        ticks = (dev0 + round(dev_s * tick_hz)) % wrap if wrap else dev0 + round(dev_s * tick_hz)
         true = HOST0 + int(dev_s / (1 + drift_ppm * 1e-6) * 1e9)
         pend.append((ticks, true))
         if len(pend) < batch:
@@ -63,7 +63,7 @@ def test_naive_arrival_stamping_would_fail_the_same_target():
 
 
 def test_batched_readings_get_their_own_times():
-    err, _, bus, true = simulate("uniform", batch=4, seconds=10)
+    _err, _, bus, _true = simulate("uniform", batch=4, seconds=10)
     # four readings per chunk, all with distinct bus times spaced by the reading period
     d = np.diff(bus)
     assert np.median(d) == pytest.approx(5e6, rel=0.01)
@@ -79,7 +79,7 @@ def test_wraparound_of_a_fast_16bit_counter():
 
 
 def test_wraparound_at_midnight_of_a_ms_of_day_clock():
-    err, cs, bus, _ = simulate("uniform", tick_hz=1000, wrap=86_400_000, dev0=86_400_000 - 3000, seconds=15)
+    err, cs, _bus, _ = simulate("uniform", tick_hz=1000, wrap=86_400_000, dev0=86_400_000 - 3000, seconds=15)
     assert cs.resets == 0
     assert np.percentile(np.abs(err), 99) <= 1.0e6  # ms resolution of this clock
 
@@ -115,7 +115,7 @@ def test_device_reset_starts_a_new_epoch_and_recovers():
 
 
 def test_stream_without_device_clock_is_dejittered():
-    err, cs, bus, true = simulate("uniform", clock=False, drift_ppm=300, seconds=20)
+    err, cs, bus, _true = simulate("uniform", clock=False, drift_ppm=300, seconds=20)
     assert cs.pseudo
     assert np.percentile(np.abs(err), 99) < 0.5e6
     # arrival jitter is 2 ms; dejittered spacing is steady to far better than that
@@ -187,7 +187,7 @@ def make_chunks(clock, rate, n, seed, events):
         t = i / rate
         tick = None
         if spec is not None:
-            tick = int(round((t + dev_s) * spec.tick_hz)) + dev_off
+            tick = round((t + dev_s) * spec.tick_hz) + dev_off
             if spec.wrap_ticks:
                 tick %= spec.wrap_ticks
             if tick < 0:

@@ -3,10 +3,14 @@ its codec, clock sync and reader thread."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from capture.app.cycle_follow import CycleFollower
 from capture.app.orchestrator import Capture
-from cycles import Cycle
 from sim_devices.motion import WavingMotion
+
+if TYPE_CHECKING:
+    from cycles import Cycle
 
 
 def test_follower_reports_improving_cycles_from_a_looping_imu() -> None:

@@ -13,15 +13,13 @@ import os
 import socket
 import threading
 import time
-from pathlib import Path
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 from wait_helpers import DEADLINE_S
 
-from capture.bus import Overflow, SampleBus
-from capture.errors import ConfigError
 from capture.app.orchestrator import Capture
 from capture.app.puppet_input import (
     PhoneTrack,
@@ -32,6 +30,8 @@ from capture.app.puppet_input import (
     unknown_touch_phases,
 )
 from capture.app.puppet_run import PuppetFollower, PuppetRun, VmcSender, parse_host_port, probe_writable
+from capture.bus import Overflow, SampleBus
+from capture.errors import ConfigError
 from capture.quat import quat_conj, quat_mul, quat_rotate
 from capture.sample import (
     DeviceIdentity,
@@ -42,6 +42,9 @@ from capture.sample import (
 from capture.session import SessionReader
 from retarget.puppet import PhoneInput, PuppetRetargeter
 from retarget.vmc import decode_frame
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 HEADER = "t,px,py,pz,qw,qx,qy,qz,touch"
 
@@ -127,7 +130,8 @@ def test_trajectory_quaternions_within_tolerance_are_normalised(tmp_path):
     (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n\n0.1,0,1,0,1,0,0,0\n", "line 4: 8 fields where the header has 9"),
     (f"{HEADER}\n0,0,1,0,0,0,0,0,0\n", "line 2: the quaternion (qw,qx,qy,qz) is zero"),
     (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,1,0,0,0\n", "line 3: the quaternion (qw,qx,qy,qz) has norm 1.414"),
-    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n", "line 4: time 0.1 s does not increase"),
+    (f"{HEADER}\n0,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n",
+     "line 4: time 0.1 s does not increase"),
     (f"{HEADER}\n0.2,0,1,0,1,0,0,0,0\n0.1,0,1,0,1,0,0,0,0\n", "line 3: time 0.1 s does not increase"),
     (f"{HEADER}\n0,0,1,0,1,0,0,0,2\n", "line 2, column touch: '2'; expected 0 or 1"),
     (f"{HEADER}\n0,0,nan,0,1,0,0,0,0\n", "line 2, column py: 'nan' is not a finite number"),
@@ -326,7 +330,8 @@ def test_follower_of_a_quaternion_phone_with_single_finger_touches(retargeter):
         if k in (25, 30, 35, 75):   # down at 0.5 s, moves, up at 1.5 s (just before that attitude sample)
             phase = {25: 0.0, 30: 1.0, 35: 1.0, 75: 2.0}[k]
             bus.publish(Sample("ss/touch", k, 0, None, t0 + k * 20_000_000 + 1_000, (phase, 100.0 + k, 200.0)))
-        bus.publish(Sample("ss/attitude", k, 0, None, t0 + k * 20_000_000 + 3_000, (math.cos(a), 0.0, 0.0, math.sin(a))))
+        bus.publish(Sample("ss/attitude", k, 0, None, t0 + k * 20_000_000 + 3_000,
+                           (math.cos(a), 0.0, 0.0, math.sin(a))))
     bus.close()
     assert run.frames == 101 and follower.touches == 4 and follower.errors == 0
     assert run.timeline() == [{"t": 0.0, "state": "RELEASED"}, {"t": 0.5, "state": "LOCOMOTION"},
@@ -593,7 +598,7 @@ def test_probe_writable_leaves_files_as_they_were(tmp_path):
 
 
 def test_unresolvable_vmc_host(retargeter):
-    with pytest.raises(ConfigError, match="cannot resolve 'no-such-host.invalid'"):
+    with pytest.raises(ConfigError, match=r"cannot resolve 'no-such-host\.invalid'"):
         VmcSender("no-such-host.invalid:9000", retargeter.skeleton)
 
 

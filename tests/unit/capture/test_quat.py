@@ -26,7 +26,7 @@ from capture.quat import (
 def random_quats(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     n = int(np.prod(shape))
     xyzw = Rotation.random(n, random_state=int(rng.integers(1 << 31))).as_quat()
-    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1).reshape(shape + (4,))
+    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1).reshape((*shape, 4))
 
 
 def same_rotation(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> bool:

@@ -246,7 +246,7 @@ def test_table_is_complete_and_every_state_can_be_left():
     assert TRANSITIONS[(S.GET_UP, E.GET_UP_DONE)] is S.LOCOMOTION
     assert TRANSITIONS[(S.RELEASED, E.GRAB)] is S.LOCOMOTION
     with pytest.raises(TypeError):
-        cast(Any, TRANSITIONS)[(S.RELEASED, E.TAKEOFF)] = S.AIRBORNE  # a read-only mapping, on purpose
+        cast("Any", TRANSITIONS)[(S.RELEASED, E.TAKEOFF)] = S.AIRBORNE  # a read-only mapping, on purpose
 
 
 def test_handle_returns_actions_and_rejects_events_not_in_the_table():

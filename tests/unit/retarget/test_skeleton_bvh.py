@@ -226,7 +226,7 @@ def test_clip_validates_shapes_quaternions_and_key_times() -> None:
     with pytest.raises(ValueError, match="contacts"):
         Clip(*args, contacts={"left_foot": np.ones(2, bool)})
     with pytest.raises(TypeError):
-        Clip(c.name, cast(Any, "skeleton"), c.fps, c.root_pos, c.rotations)  # a name, not a Skeleton: refused
+        Clip(c.name, cast("Any", "skeleton"), c.fps, c.root_pos, c.rotations)  # a name, not a Skeleton: refused
     with pytest.raises(ValueError):
         c.root_pos[0, 0] = 3.0
 
