@@ -27,7 +27,7 @@ def thesis_b(x0, y0, xt, yt, slope):
     return (slope * (x0**2 - xt**2) - 2 * xt * (yt - y0)) / (xt - x0) ** 2
 
 
-def test_item23_parabola_numbers():
+def test_parabola_numbers():
     p = fit_parabola(0.0, 0.0, 1.0, 1.0, 0.0)
     assert (p.a, p.b, p.c) == pytest.approx((-1.0, 2.0, 0.0), abs=1e-12)
     assert p.apex == pytest.approx((1.0, 1.0), abs=1e-12)

@@ -302,7 +302,7 @@ def test_invalid_jump_reasons():
 
 
 @pytest.mark.parametrize("fs", [60.0, 45.0, 90.0])
-def test_item24_takeoff_exactly_delay_after_the_trigger(fs):
+def test_takeoff_exactly_delay_after_the_trigger(fs):
     script = Script(fs=fs).walk(1.0, 1.0).ballistic(3.0, 1.0).walk(1.0, 1.0)
     states, transitions = run(script.contexts())
     assert states == CLEAN_JUMP
@@ -315,7 +315,7 @@ def test_item24_takeoff_exactly_delay_after_the_trigger(fs):
     assert 0.03 - 1e-9 <= t0 - lift <= 0.03 + 1.0 / fs
 
 
-def test_item24_jump_tracker_follows_the_arc():
+def test_jump_tracker_follows_the_arc():
     script = Script().walk(1.0, 1.2).ballistic(3.0, 1.2)
     m = PuppetStateMachine()
     apex = None
@@ -328,7 +328,7 @@ def test_item24_jump_tracker_follows_the_arc():
     assert apex[0] == pytest.approx(1.2 * 3.0 / G, abs=0.01)
 
 
-def test_item24_v_jump_scales_with_character_height():
+def test_v_jump_scales_with_character_height():
     small = MachineConfig(character_height=0.35)
     assert small.v_jump_scaled == pytest.approx(0.2)
     # A lift at 0.5 m/s is a jump for a 35 cm puppet, not for a 1.75 m one.
@@ -337,7 +337,7 @@ def test_item24_v_jump_scales_with_character_height():
     assert S.JUMP_ANTICIPATION not in run(script.contexts())[0]
 
 
-def test_item25_held_above_ground_without_momentum_is_ragdoll_then_gets_up():
+def test_held_above_ground_without_momentum_is_ragdoll_then_gets_up():
     script = Script().hold(0.5).lift(0.5, 0.4).hold(1.0).lift(0.0, 0.4).hold(2.0)
     ctxs = script.contexts()
     states, transitions = run(ctxs)
@@ -351,7 +351,7 @@ def test_item25_held_above_ground_without_momentum_is_ragdoll_then_gets_up():
     assert done.t == pytest.approx(get_up.t + 1.0, abs=1e-12)
 
 
-def test_item25_ragdoll_does_not_get_up_while_held_high():
+def test_ragdoll_does_not_get_up_while_held_high():
     script = Script().hold(0.5).lift(0.5, 0.4).hold(3.0)
     contexts = [PuppetContext(**{**{f: getattr(c, f) for f in c.__slots__}, "ragdoll_at_rest": True})
                 for c in script.contexts()]

@@ -50,7 +50,7 @@ def table(blender: MockBlender) -> ProbeTable:
     return ProbeTable.measure(blender.speed, n=21, q=7.0)
 
 
-def test_item20_linear_axis_map():
+def test_linear_axis_map():
     m = AxisMap(0.3, 1.2)
     for u, p in [(0.3, 0.0), (0.75, 0.5), (1.2, 1.0), (2.0, 1.0), (0.0, 0.0)]:
         assert m(u) == pytest.approx(p, abs=1e-12)
@@ -62,7 +62,7 @@ def test_item20_linear_axis_map():
         m(math.nan)
 
 
-def test_item21_exact_probe_hit_returns_the_probe(table: ProbeTable):
+def test_exact_probe_hit_returns_the_probe(table: ProbeTable):
     checked = 0
     for k in range(len(table.probes_p)):
         i, j = divmod(k, 21)
@@ -73,7 +73,7 @@ def test_item21_exact_probe_hit_returns_the_probe(table: ProbeTable):
     assert checked >= 400  # nearly every probe has its own u*
 
 
-def test_item21_generic_idw_exact_hit_and_equidistant_mean():
+def test_generic_idw_exact_hit_and_equidistant_mean():
     probes_u = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
     probes_p = np.array([[0.1, 0.9], [0.7, 0.2], [0.4, 0.4], [1.0, 0.0]])
     np.testing.assert_array_equal(idw(probes_u[2], probes_u, probes_p), probes_p[2])
@@ -98,7 +98,7 @@ def test_item21_generic_idw_exact_hit_and_equidistant_mean():
         idw([0, 0, 0], probes_u, probes_p)
 
 
-def test_item21_round_trip_speed_error_with_the_mock_clips(blender: MockBlender, table: ProbeTable):
+def test_round_trip_speed_error_with_the_mock_clips(blender: MockBlender, table: ProbeTable):
     grid = np.linspace(0.0, 1.0, 61)
     errors = []
     for pv in grid:
@@ -119,14 +119,14 @@ def test_item21_round_trip_speed_error_with_the_mock_clips(blender: MockBlender,
     assert worst < 0.1
 
 
-def test_item21_border_is_curved(table: ProbeTable):
+def test_border_is_curved(table: ProbeTable):
     """The p_vel = 1 border is not a straight line in u-space (thesis Fig. 6.4)."""
     b = table.border
     straight = b[0, 0] + (b[-1, 0] - b[0, 0]) * b[:, 1]
     assert np.max(np.abs(b[:, 0] - straight)) > 0.05
 
 
-def test_item22_out_of_range_projects_and_speeds_up(table: ProbeTable):
+def test_out_of_range_projects_and_speeds_up(table: ProbeTable):
     assert table.v_max == pytest.approx(3.5)
     q = table.query(5.0, 1.0)
     assert q.projected

@@ -26,7 +26,7 @@ def phone_at(position, yaw=0.0, pitch=0.0, roll=0.0) -> np.ndarray:
     return make_transform(rot, position)
 
 
-def test_item18_rotate_phone_about_its_vertical_axis_keeps_distance_and_relative_pose():
+def test_rotate_phone_about_its_vertical_axis_keeps_distance_and_relative_pose():
     # Phone 1.2 m up, pitched down 40 degrees; the object 1.5 m away, also rotated.
     phone = phone_at((0.3, 1.2, -0.4), yaw=0.2, pitch=math.radians(40))
     obj = make_transform(Rotation.from_euler("Y", 1.1).as_matrix(),
@@ -45,7 +45,7 @@ def test_item18_rotate_phone_about_its_vertical_axis_keeps_distance_and_relative
     assert np.linalg.norm(target.pose[:3, 3] - obj[:3, 3]) > 0.5
 
 
-def test_item19_pushed_below_the_floor_stops_on_it_and_recovers():
+def test_pushed_below_the_floor_stops_on_it_and_recovers():
     phone = phone_at((0.0, 1.0, 0.0))
     obj = make_transform(np.eye(3), (0.0, 1.0, 1.5))  # straight ahead, 1.5 m
     stick = MotionStick()  # ground y = 0
