@@ -145,12 +145,13 @@ def test_pty_witmotion_lossless_with_true_values(session_path):
     assert rep.devices["wrist"]["checksum_errors"] == 0 and rep.devices["wrist"]["framing_errors"] == 0
 
 
-def plugged_windows(sent: list[tuple[int, int]], unplugged: list[tuple[int, int | None]]) -> list[list[int]]:
-    """The reading numbers the simulator wrote in each stretch between two unplugs (host times)."""
+def plugged_windows(sent: list[tuple[int, int]], unplugged: list[tuple[int, int | None]]
+                    ) -> list[list[tuple[int, int]]]:
+    """What the simulator wrote (reading number, host time) in each stretch between two unplugs."""
     cuts = [start for start, _ in unplugged]
-    windows: list[list[int]] = [[] for _ in range(len(cuts) + 1)]
+    windows: list[list[tuple[int, int]]] = [[] for _ in range(len(cuts) + 1)]
     for i, t in sent:
-        windows[int(np.searchsorted(cuts, t))].append(i)
+        windows[int(np.searchsorted(cuts, t))].append((i, t))
     return windows
 
 
@@ -158,10 +159,15 @@ def test_twenty_unplug_replug_cycles_reconnect_and_lose_only_what_was_unplugged(
     cycles = 20
     with Take(PtySerialDevice(WavingSource("witmotion", RATE, seed=5)), session_path) as take:
         sim, dev, r = take.sim, take.device, take.received
-        for k in range(cycles):
+
+        def readings_arrive(what: str) -> None:
+            """Until the reader holds ten readings more than the simulator had sent so far."""
             take.wait_sent(1)
             mark = sim.sent[-1][0]
-            wait_until(lambda m=mark: r.last_index >= m + 10, DEADLINE_S, f"readings after replug {k}")
+            wait_until(lambda: r.last_index >= mark + 10, DEADLINE_S, what)
+
+        for k in range(cycles):
+            readings_arrive(f"readings after replug {k}")
             sim.unplug()
             wait_until(lambda n=k + 1: take.events(EventKind.DISCONNECTED) == n, DEADLINE_S, f"unplug {k + 1} seen")
             lost = sim.stats.lost_unplugged
@@ -169,7 +175,7 @@ def test_twenty_unplug_replug_cycles_reconnect_and_lose_only_what_was_unplugged(
             wait_until(lambda n=lost: sim.stats.lost_unplugged >= n + 3, DEADLINE_S, "readings due while unplugged")
             sim.replug()
             wait_until(lambda n=k + 1: dev.stats.reconnects == n, DEADLINE_S, f"reconnect {k + 1}")
-        take.wait_sent(1)
+        readings_arrive(f"readings after replug {cycles}")  # the last stretch streams too
         sent = take.quiet()
         rep = take.stop_when_received(index=sent[-1][0])
         stats = sim.stats
@@ -183,15 +189,20 @@ def test_twenty_unplug_replug_cycles_reconnect_and_lose_only_what_was_unplugged(
     imu = rd.samples("wrist/imu")
     got_idx = reading_index(imu.t_device_ns)
     got = set(got_idx.tolist())
-    # every reading written while the port was plugged arrived, except those still in flight when
-    # the cable was pulled: in each plugged stretch what arrived is a run from its start, no holes
+    # every reading written while the port was plugged arrived, except those written while the reader
+    # was still opening the new port (opening flushes its input) and those still in flight when the
+    # cable was pulled: in each plugged stretch what arrived is one run, with no hole
+    opens = [e["t_host_ns"] for e in rd.events() if e["source"] == "wrist" and e["kind"] == "opened"]
     windows = plugged_windows(sent, stats.unplugged_windows)
-    for w, idx in enumerate(windows):
-        arrived = [i in got for i in idx]
+    assert len(opens) == len(windows) == cycles + 1
+    for w, written in enumerate(windows):
+        arrived = [i in got for i, _ in written]
         n = sum(arrived)
         assert n > 0, f"nothing arrived between unplug {w} and {w + 1}"
-        assert arrived == [True] * n + [False] * (len(idx) - n), f"a hole inside plugged stretch {w}"
-    assert not windows[-1] or all(i in got for i in windows[-1])  # the last stretch ended quietly
+        first = arrived.index(True)
+        assert arrived[first:first + n] == [True] * n, f"a hole inside plugged stretch {w}"
+        assert all(t <= opens[w] for _, t in written[:first]), f"lost after the reader had opened, stretch {w}"
+    assert all(i in got for i, _ in windows[-1][first:])  # the last stretch ended quietly: nothing in flight
     assert got <= {i for i, _ in sent}
     # every reading lost (unplugged or in flight) shows as a sequence gap of its exact size
     assert np.array_equal(np.diff(imu.seq), np.diff(got_idx))
