@@ -39,6 +39,10 @@ log = logging.getLogger(__name__)
 
 #: where ``perfcap sim phone`` finds the pairing token when ``--token`` is not given
 TOKEN_ENV = "PERFCAP_SIM_TOKEN"
+#: seconds a simulated phone waits to connect and be welcomed before it gives up
+CONNECT_TIMEOUT_S = 30.0
+#: seconds a stop request (SIGTERM) waits for a clean close before the phone's run is cancelled
+STOP_GRACE_S = 2.0
 
 
 def _ssl_arg(fingerprint: str | None, url: str) -> Any:
@@ -153,8 +157,10 @@ class SimPagePhone:
                              motion=self.motion)
         self.messages = msgs
         connector = None if self.local_addr is None else aiohttp.TCPConnector(local_addr=(self.local_addr, 0))
-        async with aiohttp.ClientSession(connector=connector) as session:
-            ws = await self._connect(session)
+        # a service that accepts the connection but never answers must not hold the phone for minutes
+        timeout = aiohttp.ClientTimeout(sock_connect=CONNECT_TIMEOUT_S, sock_read=None)
+        async with aiohttp.ClientSession(connector=connector, timeout=timeout) as session:
+            ws = await asyncio.wait_for(self._connect(session), CONNECT_TIMEOUT_S)
             if ws is None:
                 return
             reader = asyncio.get_running_loop().create_task(self._answer(ws))
@@ -294,17 +300,23 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     async def go() -> None:
         loop = asyncio.get_running_loop()
+        task = loop.create_task(phone.run())
+
+        def stop() -> None:  # a clean close if it can, cancelled if it is stuck (connecting, say)
+            phone.stop()
+            loop.call_later(STOP_GRACE_S, task.cancel)
+
         for sig in (signal.SIGTERM, signal.SIGINT):
             with contextlib.suppress(NotImplementedError, RuntimeError):   # (no signal handlers on Windows)
-                loop.add_signal_handler(sig, phone.stop)
-        task = loop.create_task(phone.run())
+                loop.add_signal_handler(sig, stop)
         if a.report:   # once paired, so whoever waits for this line knows the phone is streaming
             while (phone.t0_host_ns is None or phone.device is None) and not task.done():
                 await asyncio.sleep(0.001)
             if phone.device is not None:
                 print(json.dumps({"t0_host_ns": phone.t0_host_ns, "t0_ms": phone.t0_ms, "device": phone.device}),
                       flush=True)
-        await task
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
 
     try:
         asyncio.run(go())
@@ -312,6 +324,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except Exception as exc:  # one line for the user
         print(f"perfcap sim phone: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    if phone.device is None and not phone.close_code:
+        print(f"perfcap sim phone: not paired with {a.url} (no welcome within {CONNECT_TIMEOUT_S:g} s, or stopped)",
+              file=sys.stderr)
         return 1
     if phone.close_code and phone.device is None:
         print(f"perfcap sim phone: refused ({phone.close_code}): {phone.close_reason}", file=sys.stderr)

@@ -11,14 +11,17 @@ standard output.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import queue
 import secrets
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -58,7 +61,7 @@ DEMO_DEVICES = [
 ]
 #: the simulated drift of each device's clock, ppm (what the fit should find)
 DEMO_DRIFT_PPM = {"wrist": 80.0, "head": -40.0, "pad": 30.0}
-DEMO_UNPLUG_AT, DEMO_UNPLUG_FOR = 3.0, 0.5
+DEMO_UNPLUG_EVERY, DEMO_UNPLUG_FOR = 3.0, 0.5
 PHONE_ID = "demo-phone"
 
 
@@ -105,7 +108,7 @@ def start_serial_sim(duration: float, say: Say) -> SerialSim | None:
         return None
     link = os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-port-"), "ttyWT901")
     cmd = _perfcap("sim", "serial", "--kind", "witmotion", "--rate", "200", "--seed", "4", "--link", link,
-                   "--unplug-every", str(DEMO_UNPLUG_AT), "--unplug-for", str(DEMO_UNPLUG_FOR),
+                   "--unplug-every", str(DEMO_UNPLUG_EVERY), "--unplug-for", str(DEMO_UNPLUG_FOR),
                    "--duration", str(duration + 30))
     try:
         proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
@@ -157,9 +160,14 @@ class PhoneSim:
                 log.debug("simulated phone said %r", line)
 
 
-def start_phone(service: Service, duration: float) -> PhoneSim | None:
+#: seconds the demo waits for its simulated phone to pair before it goes on without it
+PHONE_START_S = 20.0
+
+
+def start_phone(service: Service, duration: float, stop: threading.Event) -> PhoneSim | None:
     """The simulated phone, performing the puppeteer's choreography (so the demo's puppet walks, runs,
-    hops and crouches); None (logged) when it does not start."""
+    hops and crouches), once it has paired; None (with the reason logged) when it does not pair within
+    ``PHONE_START_S`` or ``stop`` is set meanwhile."""
     ep = service.endpoints
     url = ep.page_url.replace("https://", "wss://").replace("http://", "ws://") + "ws/phone"
     cmd = _perfcap("sim", "phone", "--url", url, "--id", PHONE_ID, "--rate", "60", "--duration",
@@ -167,20 +175,37 @@ def start_phone(service: Service, duration: float) -> PhoneSim | None:
     if ep.fingerprint:
         cmd += ["--fingerprint", ep.fingerprint]
     env = dict(os.environ, PERFCAP_SIM_TOKEN=service.tokens.token)   # not on a command line others can read
+    errors = tempfile.TemporaryFile("w+")   # why it did not start, if it does not (a pipe could fill up)
     try:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                text=True, env=env)
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=errors, text=True,
+                                env=env)
     except OSError as exc:
+        errors.close()
         log.warning("no simulated phone: %s", exc)
         return None
-    line = proc.stdout.readline() if proc.stdout else ""
+    first: queue.Queue[str] = queue.Queue()
+    out = proc.stdout
+    threading.Thread(target=lambda: first.put(out.readline() if out else ""), name="demo-phone-start",
+                     daemon=True).start()
+    deadline = MONOTONIC.now_ns() + int(PHONE_START_S * 1e9)
+    line: str | None = None
+    while line is None and not stop.is_set() and MONOTONIC.now_ns() < deadline:
+        with contextlib.suppress(queue.Empty):
+            line = first.get(timeout=0.1)
     try:
-        start = json.loads(line)
-        return PhoneSim(proc, int(start["t0_host_ns"]), float(start["t0_ms"]))
+        if line:
+            start = json.loads(line)
+            errors.close()
+            return PhoneSim(proc, int(start["t0_host_ns"]), float(start["t0_ms"]))
     except (ValueError, KeyError, TypeError):
-        _stop_child(proc)
-        log.warning("the simulated phone did not start (is perfcap installed with pip install -e .?)")
-        return None
+        pass
+    _stop_child(proc)
+    errors.seek(0)
+    said = [ln for ln in errors.read().splitlines() if ln.strip()]
+    errors.close()
+    why = "stopped" if stop.is_set() else said[-1] if said else f"it did not pair within {PHONE_START_S:g} s"
+    log.warning("the demo goes on without its simulated phone (%s)", why)
+    return None
 
 
 def _p99_after_first_second(t_bus_ns: np.ndarray, true_ns: np.ndarray) -> float | None:
@@ -216,7 +241,7 @@ def bus_time_accuracy(cap: Capture, reader: SessionReader, phone: PhoneSim | Non
 
 
 def stream_lines(summary: dict[str, Any], accuracy: dict[str, float], phone: PhoneSim | None,
-                 serial: SerialSim | None) -> list[str]:
+                 serial: SerialSim | None, unplugs: int = 1) -> list[str]:
     """One line per IMU stream of the session: samples, rate, drops and how its clock was fitted."""
     lines = []
     for st in summary["streams"]:
@@ -235,7 +260,8 @@ def stream_lines(summary: dict[str, Any], accuracy: dict[str, float], phone: Pho
         if dev == "phone" and phone is not None:
             desc += f"; {phone.events} events sent, over TLS + WebSocket"
         if dev == "hand" and serial is not None and st["drops"]:
-            desc += f"; its drops are the readings sent during the {DEMO_UNPLUG_FOR:g} s it was unplugged"
+            desc += (f"; its drops are the readings sent while it was unplugged ({unplugs} time(s),"
+                     f" {DEMO_UNPLUG_FOR:g} s each)")
         lines.append(f"  {st['name']:12s} {st['samples']:6d} samples {st['rate_hz']:7.2f} Hz  {st['drops']} drops"
                      f"  {desc}")
     return lines
@@ -329,11 +355,13 @@ def demo_puppet(reader: SessionReader) -> str:
         t0 = MONOTONIC.now_ns()
         run.run(frames)
         ms = (MONOTONIC.now_ns() - t0) / 1e6 / max(run.frames, 1)
+        if run.frames < 2:
+            return f"puppet: not driven from the phone (its take gave {run.frames} frame(s))"
         clip = run.clip("puppet")
         write_bvh(path, clip)
-    except Exception as exc:
+        ground = np.hypot(np.diff(clip.root_pos[:, 0]), np.diff(clip.root_pos[:, 2])) * clip.fps
+    except Exception as exc:   # the demo goes on whatever failed here; the reason is said in one line
         return f"puppet: not driven from the phone ({type(exc).__name__}: {exc})"
-    ground = np.hypot(np.diff(clip.root_pos[:, 0]), np.diff(clip.root_pos[:, 2])) * clip.fps
     held = "held throughout: the simulated phone sends no touch" if track.held_throughout else "grabbed by touch"
     return (f"puppet: the phone's attitude ({held}) drove {run.frames} frames at 60 Hz ({ms:.2f} ms each): the"
             f" character covered {ground.sum() / clip.fps:.1f} m at up to {np.percentile(ground, 95):.1f} m/s;"

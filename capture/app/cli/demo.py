@@ -44,26 +44,26 @@ def run(args: argparse.Namespace) -> int:
     check_duration(args.duration)
     path = args.output or os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-"), "demo.mcap")
     devices = list(demo.DEMO_DEVICES)
-    serial = demo.start_serial_sim(args.duration, out)
-    if serial is not None:
-        devices.append(("hand", f"witmotion@serial://{serial.port}?rate=200&device_clock=true"))
-    out(f"perfcap {__version__} demo: {len(devices)} simulated IMUs through the real codec, clock sync, bus and"
-        " recorder")
-    for name, url in devices:
-        out(f"  {name:6s} {url}")
-    if serial is not None:
-        out(f"  (hand is a WT901 served on a pty by 'perfcap sim serial' in another process, read through pyserial;"
-            f" it is unplugged {demo.DEMO_UNPLUG_AT:g} s in for {demo.DEMO_UNPLUG_FOR:g} s)")
-    out("  phone  the built-in phone page, simulated: 60 Hz devicemotion over a WebSocket with TLS to the service"
-        " on loopback (token, certificate pinned)")
     stop = stop_on_signals()
     phone: PhoneSim | None = None
-    try:
+    serial = demo.start_serial_sim(args.duration, out)
+    try:   # from here on, every child is stopped and reaped whatever happens
+        if serial is not None:
+            devices.append(("hand", f"witmotion@serial://{serial.port}?rate=200&device_clock=true"))
+        out(f"perfcap {__version__} demo: {len(devices)} simulated IMUs through the real codec, clock sync, bus"
+            " and recorder")
+        for name, url in devices:
+            out(f"  {name:6s} {url}")
+        if serial is not None:
+            out(f"  (hand is a WT901 served on a pty by 'perfcap sim serial' in another process, read through"
+                f" pyserial; it is unplugged every {demo.DEMO_UNPLUG_EVERY:g} s for {demo.DEMO_UNPLUG_FOR:g} s)")
+        out("  phone  the built-in phone page, simulated by 'perfcap sim phone' in another process: 60 Hz"
+            " devicemotion over a WebSocket with TLS to the service on loopback (token, certificate pinned)")
         service, st = demo.start_service([f"{n}={u}" for n, u in devices], path, args.overwrite)
         cap = service.capture
         follow = demo.follow_wrist(cap)
         try:
-            phone = demo.start_phone(service, args.duration)
+            phone = demo.start_phone(service, args.duration, stop)
             t0 = MONOTONIC.now_ns()
             next_tick = 1.0
             while not stop.is_set():
@@ -89,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     accuracy = demo.bus_time_accuracy(cap, reader, phone)
     out(f"\nsession {path}: {s['size_bytes'] / 1024:.0f} KiB for {(s['raw_bytes'] or 0) / 1024:.0f} KiB of raw"
         " device bytes")
-    for line in demo.stream_lines(s, accuracy, phone, serial):
+    unplugs = int(report.devices.get("hand", {}).get("reconnects", 0))
+    for line in demo.stream_lines(s, accuracy, phone, serial, unplugs):
         out(line)
     rep = replay_session(path, speed=0)
     ver = rep.verification or {}
