@@ -591,9 +591,21 @@ class SessionReader:
         return spans[0][0], spans[-1][1]
 
     def sample_blocks(self, streams: set[str] | None = None) -> Iterator[SampleBatch]:
+        """The decoded sample blocks of ``streams`` (default all); a block that does not decode, or whose
+        width is not its stream's channel count, is skipped and counted as damaged."""
         names = self.streams if streams is None else streams
         for name in names:
-            yield from self._decoded(f"/samples/{name}", lambda data, name=name: decode_sample_block(name, data))
+            info = self.streams.get(name)
+            width = len(info.channels) if info is not None else None
+
+            def decode(data: bytes, name: str = name, width: int | None = width) -> SampleBatch:
+                b = decode_sample_block(name, data)
+                if width is not None and b.values.shape[1] != width:
+                    raise ValueError(f"sample block of {name} holds {b.values.shape[1]} channels, its stream"
+                                     f" declares {width}")
+                return b
+
+            yield from self._decoded(f"/samples/{name}", decode)
 
     def samples(self, stream: str) -> SampleBatch:
         """All decoded samples of one stream as one batch."""

@@ -35,7 +35,13 @@ class Option:
             return "|".join(self.choices)
         return {int: "INT", float: "NUMBER (finite)", bool: "true|false", str: "TEXT"}.get(self.type, "VALUE")
 
-    def coerce(self, key: str, value: Any, where: str) -> Any:
+    def parse(self, value: Any) -> Any:
+        """``value`` as this option's type, checked against its choices and range: the one value parser of
+        device options, transport options and settings.
+
+        Raises:
+            BadValueError: with ``.problem`` ``"type"``, ``"choice"`` or ``"range"``.
+        """
         try:
             if self.type is bool:
                 if isinstance(value, bool):
@@ -59,14 +65,38 @@ class Option:
             else:
                 v = str(value)
         except (TypeError, ValueError):
-            raise ConfigError(f"{where}: option {key}={value!r} is not {self.form()}", source=where) from None
+            raise BadValueError("type") from None
         if self.choices and v not in self.choices:
-            raise ConfigError(f"{where}: option {key}={value!r} must be one of {self.form()}", source=where)
+            raise BadValueError("choice")
         if (self.min is not None and v < self.min) or (self.max is not None and v > self.max):
-            rng = (f"within [{self.min:g}, {self.max:g}]" if self.min is not None and self.max is not None
-                   else f"at least {self.min:g}" if self.min is not None else f"at most {self.max:g}")
-            raise ConfigError(f"{where}: option {key}={value!r} must be {rng}", source=where)
+            raise BadValueError("range")
         return v
+
+    def range_text(self) -> str:
+        if self.min is not None and self.max is not None:
+            return f"within [{self.min:g}, {self.max:g}]"
+        return f"at least {self.min:g}" if self.min is not None else f"at most {self.max:g}"
+
+    def coerce(self, key: str, value: Any, where: str) -> Any:
+        """:meth:`parse`, with a bad value said as a URL or device option (``rate='x' is not NUMBER``).
+
+        Raises:
+            ConfigError: naming ``where``, the key and the expected form.
+        """
+        try:
+            return self.parse(value)
+        except BadValueError as exc:
+            what = {"type": f"is not {self.form()}", "choice": f"must be one of {self.form()}",
+                    "range": f"must be {self.range_text()}"}[exc.problem]
+            raise ConfigError(f"{where}: option {key}={value!r} {what}", source=where) from None
+
+
+class BadValueError(ValueError):
+    """A value an ``Option`` does not take; ``problem`` is ``"type"``, ``"choice"`` or ``"range"``."""
+
+    def __init__(self, problem: str) -> None:
+        super().__init__(problem)
+        self.problem = problem
 
 
 def resolve_options(spec: Mapping[str, Option], given: Mapping[str, Any], where: str, usage: str) -> dict[str, Any]:

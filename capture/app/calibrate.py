@@ -7,7 +7,6 @@ Each step returns the updated calibration, what it measured (for ``--json``) and
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -27,11 +26,6 @@ if TYPE_CHECKING:
 
 #: what a step tells the performer before it reads (the CLI prints it on stderr)
 Announce = Callable[[str], None]
-
-
-def _stderr(text: str) -> None:
-    sys.stderr.write(text + "\n")
-    sys.stderr.flush()
 
 
 @dataclass
@@ -81,7 +75,7 @@ class _Keep(Subscriber):
 
 
 def collect_imu(spec: DeviceSpec, seconds: float, s: Settings, what: str, stop: threading.Event,
-                announce: Announce = _stderr) -> ImuTake:
+                announce: Announce) -> ImuTake:
     """Read one device for ``seconds`` (or until ``stop``).
 
     Raises:

@@ -15,13 +15,13 @@ import numpy as np
 from capture.app.export import TIMING_COLUMNS as EXPORT_TIMING_COLUMNS
 from capture.clock import MONOTONIC
 from capture.errors import ConfigError
+from capture.session import MCAP_MAGIC
 
 if TYPE_CHECKING:
     from capture.sample import SampleBatch
     from capture.session import SessionReader
     from cycles import Cycle
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 CSV_TIME_COLUMNS = ("seconds_elapsed", "t", "time_s", "t_s", "time[s]", "time (s)", "time", "timestamp")
 
 

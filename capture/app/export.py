@@ -37,7 +37,10 @@ def export_session(reader: SessionReader, folder: str, fmt: Literal["csv", "json
     """
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ConfigError(f"{folder} exists and is not a directory")
-    os.makedirs(folder, exist_ok=True)
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the folder {folder}: {exc.strerror or exc}") from None
     planned = [os.path.join(folder, s.replace("/", "__") + f".{fmt}") for s in reader.streams]
     planned += [os.path.join(folder, f"_events.{fmt}")]
     clash = [p for p in planned if os.path.exists(p)]

@@ -82,18 +82,24 @@ def write_outputs(run: PuppetRun, bvh: str | None, timeline: str | None) -> tupl
 
 
 def probe_writable(path: str | None, flag: str) -> None:
-    """Check before a performance that an output file can be written: it is opened for appending
-    (created, and removed again, when it does not exist yet; an existing file is left as it is).
+    """Check before a performance that an output file can be written: its folder exists, it is no
+    folder, and it opens for appending (created, and removed again, when it does not exist yet; an
+    existing file is left as it is).
 
     Args:
         path: the output (None: nothing to check).
         flag: its option, for the message.
 
     Raises:
-        ConfigError: it cannot be opened for writing.
+        ConfigError: it cannot be written, saying why.
     """
     if not path:
         return
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ConfigError(f"{flag} {path}: the folder {folder} does not exist")
+    if os.path.isdir(path):
+        raise ConfigError(f"{flag} {path} is a directory")
     existed = os.path.lexists(path)
     try:
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NONBLOCK, 0o666)

@@ -13,24 +13,27 @@ from dataclasses import Field, field, fields
 from typing import TYPE_CHECKING, Any
 
 from capture.errors import ConfigError
-from devices.options import Option
+from devices.options import BadValueError, Option
 
 if TYPE_CHECKING:
     import argparse
-    from collections.abc import Iterator, Mapping
+    from collections.abc import Iterator
 
 
 def setting(default: Any, help: str, *, min: float | None = None, max: float | None = None,  # noqa: A002 - Option's
-            choices: tuple[str, ...] | None = None, flag: str | None = None, metavar: str | None = None,
-            repeat: bool = False) -> Any:
-    """A settings field: its ``Option`` (type from the default) and how its flag is spelled.
+            choices: tuple[str, ...] | None = None, flag: str | None = None, flag_help: str | None = None,
+            metavar: str | None = None, repeat: bool = False) -> Any:
+    """A settings field: its ``Option`` (type from the default; ``help`` says what the setting is) and how
+    its flag is spelled.
 
     Args:
         flag: the flag, when not ``--<key-with-dashes>`` (``--no-<key>`` for a setting on by default).
+        flag_help: the flag's help, when it says something else than ``help`` (``--no-tls``).
         repeat: the flag may be given several times; the values are joined with commas.
     """
     opt = Option(type(default), default, help, choices, min, max)
-    return field(default=default, metadata={"option": opt, "flag": flag, "metavar": metavar, "repeat": repeat})
+    return field(default=default, metadata={"option": opt, "flag": flag, "flag_help": flag_help, "metavar": metavar,
+                                            "repeat": repeat})
 
 
 def setting_fields(cls: type) -> Iterator[tuple[Field[Any], Option]]:
@@ -41,17 +44,20 @@ def setting_fields(cls: type) -> Iterator[tuple[Field[Any], Option]]:
             yield f, opt
 
 
-_TYPE_NAMES = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+_TYPE_NAMES = {int: "an integer", float: "a finite number", bool: "true or false", str: "a string"}
 
 
 def parse_value(opt: Option, key: str, value: Any, where: str, *, from_text: bool) -> Any:
-    """A setting's value, parsed (from text: flags, environment) or type-checked (a file's typed
-    value), then checked by its option (range, choices).
+    """A setting's value through the one value parser (``Option.parse``), said as a setting when it is
+    bad (``bus.live_queue = 'x' must be an integer``). A value from text (flags, environment) is parsed
+    after its surrounding spaces are dropped; a file's typed value must already have the setting's type.
 
     Raises:
         ConfigError: naming ``where``, the key and the expected form.
     """
-    if not from_text:
+    if from_text and isinstance(value, str):
+        value = value.strip()
+    elif not from_text:
         typ = opt.type
         ok = (isinstance(value, bool) if typ is bool else
               isinstance(value, int) and not isinstance(value, bool) if typ is int else
@@ -59,7 +65,13 @@ def parse_value(opt: Option, key: str, value: Any, where: str, *, from_text: boo
               isinstance(value, typ))
         if not ok:
             raise ConfigError(f"{where}: {key} = {value!r} must be {_TYPE_NAMES[typ]}", source=where)
-    return opt.coerce(key, value, where)
+    try:
+        return opt.parse(value)
+    except BadValueError as exc:
+        what = {"type": f"must be {_TYPE_NAMES.get(opt.type, opt.form())}",
+                "choice": f"must be one of {', '.join(opt.choices or ())}",
+                "range": f"must be {opt.range_text()}"}[exc.problem]
+        raise ConfigError(f"{where}: {key} = {value!r} {what}", source=where) from None
 
 
 # -- flags --------------------------------------------------------------------------------------------
@@ -79,10 +91,11 @@ def add_flags(parser: argparse.ArgumentParser, cls: type) -> None:
         flag = flag_name(f, opt)
         if opt.type is bool:
             parser.add_argument(flag, dest=f.name, action="store_const", const=not opt.default, default=None,
-                                help=opt.help)
+                                help=f.metadata.get("flag_help") or opt.help)
         else:
             parser.add_argument(flag, dest=f.name, action="append" if f.metadata.get("repeat") else "store",
-                                default=None, metavar=f.metadata.get("metavar"), help=opt.help)
+                                default=None, metavar=f.metadata.get("metavar"),
+                                help=f.metadata.get("flag_help") or opt.help)
 
 
 def flag_values(args: argparse.Namespace, cls: type) -> dict[str, Any]:
@@ -102,8 +115,3 @@ def flag_values(args: argparse.Namespace, cls: type) -> dict[str, Any]:
         out[f.name] = v if opt.type is bool else parse_value(opt, flag_name(f, opt), v, "command line",
                                                              from_text=True)
     return out
-
-
-def settings_items(cfg: object) -> Mapping[str, Any]:
-    """The settings of a settings object, by key."""
-    return {f.name: getattr(cfg, f.name) for f, _ in setting_fields(type(cfg))}

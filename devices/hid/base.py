@@ -50,7 +50,7 @@ class HidDevice(Device[CodecT]):
         """Open, note the bus (USB or Bluetooth) for sessions, then run the handshake."""
         self._pending = []
         items = super().open()
-        bus = str(getattr(self.transport, "bus", "unknown"))
+        bus = str(self.hid.bus)
         return [DeviceDescriptor(self.name, BUS_KEY, bus.encode(), self.clock.now_ns()), *items]
 
     # -- handshake helpers ---------------------------------------------------------------------------

@@ -109,7 +109,7 @@ class _SwitchBase(HidDevice[SwitchCodec]):
         self._counter = 0
         self._last_tick = None
         self.hid_report_descriptor()
-        if str(getattr(self.hid, "bus", "")) == "usb":
+        if str(self.hid.bus) == "usb":
             self._usb_setup()
         info_data = self.subcommand(sw.SC_DEVICE_INFO, b"", "device info (0x02)").data
         try:

@@ -123,7 +123,7 @@ class _SonyPad(HidDevice[DualShock4Codec | DualSenseCodec]):
     def handshake(self) -> None:
         self.hid_report_descriptor()
         timeout = float(self.opts["init_timeout"])
-        bus = str(getattr(self.hid, "bus", "unknown"))
+        bus = str(self.hid.bus)
         if bus not in (USB, BLUETOOTH):
             bus = self._bus_from_reports(timeout)
         self.bus_kind = bus

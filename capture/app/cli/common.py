@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import signal
 import sys
 import threading
@@ -121,17 +120,6 @@ def settings(args: argparse.Namespace, serve: dict[str, Any] | None = None) -> S
 def check_duration(d: float | None) -> None:
     if d is not None and (not math.isfinite(d) or d <= 0):
         raise ConfigError(f"--duration must be a positive number of seconds, not {d}")
-
-
-def check_writable(path: str | None, flag: str) -> None:
-    """``path`` can be created: its folder exists and it is not a folder itself."""
-    if path is None:
-        return
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise ConfigError(f"{flag} {path}: the folder {folder} does not exist")
-    if os.path.isdir(path):
-        raise ConfigError(f"{flag} {path} is a directory")
 
 
 def print_capture(report: CaptureReport, as_json: bool) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import Progress, out
+from capture.app.cli.common import EXIT_CHECK_FAILED, Progress, err, out
 
 if TYPE_CHECKING:
     import argparse
@@ -34,4 +34,7 @@ def run(args: argparse.Namespace) -> int:
     out(f"exported {res.samples} samples of {res.streams} streams to {folder}/ ({args.format})")
     for note in res.notes:
         out(f"note: {note}")
+    if not res.samples:
+        err(f"perfcap: error: {args.session} holds no samples to export (its events were written)")
+        return EXIT_CHECK_FAILED
     return 0

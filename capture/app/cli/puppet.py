@@ -10,7 +10,6 @@ from capture.app.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_CHECK_FAILED,
     check_duration,
-    check_writable,
     err,
     live_line,
     out,
@@ -67,8 +66,6 @@ def run(args: argparse.Namespace) -> int:
         check_duration(args.duration)
     if args.device is not None and not args.session:
         raise ConfigError("--device chooses the phone of a --session")
-    check_writable(args.output, "-o")
-    check_writable(args.timeline, "--timeline")
     puppet_run.probe_writable(args.output, "-o")          # before the performance, not after it
     puppet_run.probe_writable(args.timeline, "--timeline")
     if args.vmc:
@@ -97,31 +94,31 @@ def run(args: argparse.Namespace) -> int:
 
     retargeter = PuppetRetargeter()
     vmc = VmcSender(args.vmc, retargeter.skeleton) if args.vmc else None
-    run = PuppetRun(retargeter, rate=rate, vmc=vmc, keep_frames=bool(args.output))
+    performance = PuppetRun(retargeter, rate=rate, vmc=vmc, keep_frames=bool(args.output))
     code = 0
     try:
         if spec is not None:                # --phone (else --input or --session gave the track)
-            source, code, notes = _live(args, spec, run)
+            source, code, notes = _live(args, spec, performance)
         elif track is not None:
             source = track.source
             for inp in track.resample(rate):
                 try:
-                    run.step(inp)
+                    performance.step(inp)
                 except ValueError as exc:   # an input the retargeter cannot follow: bad input, one line
                     raise ConfigError(f"{source}: the puppet cannot follow the input at {inp.t:.6g} s"
                                       f" ({' '.join(str(exc).split())})") from None
     finally:
         if vmc is not None:
             vmc.close()
-    if not run.frames:
+    if not performance.frames:
         err(f"perfcap: error: no phone orientation from {source}: the puppet was not driven")
         return EXIT_CHECK_FAILED
-    out(f"puppet: {run.frames} frames at {rate:g} Hz ({run.duration:.2f} s) from {source}")
+    out(f"puppet: {performance.frames} frames at {rate:g} Hz ({performance.duration:.2f} s) from {source}")
     for note in notes:
         out(f"  note: {note}")
-    out("  states: " + ", ".join(f"{s} {t:.2f} s" for s, t in run.state_times().items())
-        + f" ({len(run.timeline()) - 1} change(s))")
-    written, unwritten = puppet_run.write_outputs(run, args.output, args.timeline)
+    out("  states: " + ", ".join(f"{s} {t:.2f} s" for s, t in performance.state_times().items())
+        + f" ({len(performance.timeline()) - 1} change(s))")
+    written, unwritten = puppet_run.write_outputs(performance, args.output, args.timeline)
     for line in written:
         out(line)
     if vmc is not None:
@@ -136,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     return code
 
 
-def _live(args: argparse.Namespace, spec: DeviceSpec, run: PuppetRun) -> tuple[str, int, list[str]]:
+def _live(args: argparse.Namespace, spec: DeviceSpec, performance: PuppetRun) -> tuple[str, int, list[str]]:
     """``--phone``: the device on a bus, followed until Ctrl-C, ``--duration`` or its end."""
     from capture.app.orchestrator import Capture
     from capture.app.puppet_run import PuppetFollower
@@ -144,7 +141,7 @@ def _live(args: argparse.Namespace, spec: DeviceSpec, run: PuppetRun) -> tuple[s
     cap = Capture([spec], meta={"command": " ".join(sys.argv)})
     try:
         dev = cap.devices[0]
-        follower = PuppetFollower.for_device(dev.name, dev.streams, run, hold=True if args.hold else None)
+        follower = PuppetFollower.for_device(dev.name, dev.streams, performance, hold=True if args.hold else None)
         cap.add_processor(follower, name="puppet")   # follows the phone, publishes <device>/puppet
     except BaseException:
         cap.stop()

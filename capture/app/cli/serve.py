@@ -10,9 +10,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from capture import __version__
-from capture.app.cli.common import EXIT_BAD_INPUT, check_duration, live_line, out, print_capture, settings
+from capture.app.cli.common import (
+    EXIT_BAD_INPUT,
+    check_duration,
+    live_line,
+    out,
+    print_capture,
+    seconds_since,
+    settings,
+)
 from capture.app.schema import add_flags, flag_values
 from capture.app.serve.config import ServeConfig
+from capture.clock import MONOTONIC
 
 if TYPE_CHECKING:
     import argparse
@@ -119,10 +128,10 @@ def run(args: argparse.Namespace) -> int:
             loop.call_later(args.duration, service.request_stop)
 
         async def ticker() -> None:
-            t0 = loop.time()
+            t0 = MONOTONIC.now_ns()
             while True:
                 await asyncio.sleep(args.status_every)
-                live_line(service.capture, loop.time() - t0)
+                live_line(service.capture, seconds_since(t0))
 
         task = loop.create_task(ticker()) if not args.quiet and args.status_every > 0 else None
         try:

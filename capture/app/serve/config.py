@@ -25,13 +25,13 @@ _PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
 @dataclass
 class Limits:
     """Bounds per client. ``rate_hz`` and ``burst`` are messages per second per connection (UDP: per
-    source host)."""
+    source host). ``Limits()`` are the limits the default settings give (``ServeConfig().client_limits()``)."""
 
     max_message_bytes: int = 64 * 1024   # WebSocket and UDP messages
     max_push_bytes: int = 4 << 20        # one Sensor Logger POST (a batch period of every sensor)
     rate_hz: float = 200.0
     burst: float = 400.0
-    max_connections: int = 32
+    max_connections: int = 64            # 2 x max_phones
     max_connections_per_host: int = 4
     hello_timeout_s: float = 3.0
     max_pending_hello: int = 64    # connections waiting for their hello, in total
@@ -47,12 +47,14 @@ class ServeConfig:
     host: str = setting("0.0.0.0", "address the phone endpoints listen on (default all)")
     port: int = setting(8443, "phone page / WebSocket / Sensor Logger port (HTTPS)", min=0, max=65535)
     public_host: str = setting("", "address phones use to reach this machine (default: detected LAN address)")
-    tls: bool = setting(True, "plain HTTP (browsers then refuse motion sensors)")
+    tls: bool = setting(True, "serve the phone endpoints over HTTPS (browsers give motion sensors only to secure"
+                        " pages)", flag_help="plain HTTP (browsers then refuse motion sensors)")
     control_host: str = setting("127.0.0.1", "control API address (default loopback only)")
     control_port: int = setting(8780, "control API port (-1: none)", min=-1, max=65535)
     state_dir: str = setting("", "where the token and certificate are kept (default $XDG_DATA_HOME/perfcap/serve)")
     sessions_dir: str = setting(".", "where POST /api/record/start puts sessions without a path")
-    mdns: bool = setting(True, "do not advertise or browse with mDNS")
+    mdns: bool = setting(True, "advertise the service and browse for SensorServer phones with mDNS",
+                         flag_help="do not advertise or browse with mDNS")
     mdns_interfaces: str = setting("all", "interfaces mDNS uses: all, or comma-separated interface addresses")
     connect_sensorserver: bool = setting(False, "connect to SensorServer phones found by mDNS without asking")
     sensorserver_types: str = setting("accelerometer,gyroscope", "the sensors asked of SensorServer phones")

@@ -35,7 +35,7 @@ from capture.app.serve.tls import Certificate, ensure_certificate
 from capture.clock import MONOTONIC, Clock
 from capture.errors import CaptureError, ConfigError
 from devices import DeviceSpec, ReconnectPolicy
-from devices.transports.network import Inbox, drop_hub, hub
+from devices.transports.network import Inbox, NetTransport, drop_hub, hub
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
@@ -257,7 +257,7 @@ class Service:
         for d in list(self.capture.devices):
             h = d.health()
             streams = {s.name: snap.get(s.name, {"samples": 0, "rate_hz": 0.0, "drops": 0}) for s in d.streams}
-            box = self.phones.hub.get(getattr(d.transport, "key", "")) if d.transport.scheme == "net" else None
+            box = self.phones.hub.get(d.transport.key) if isinstance(d.transport, NetTransport) else None
             clocks = []
             for cs in d.clock_states():
                 clocks.append({"stream": cs.stream, "offset_ms": (cs.host_ref_ns - cs.device_ref_ns) / 1e6,
@@ -465,7 +465,7 @@ class Service:
         await self._close_network()
         box_hub = self.phones.hub
         box_hub.finish_all()  # readers drain their inboxes, then end
-        readers = [r for r in self.capture.readers if getattr(r.device.transport, "scheme", "") == "net"]
+        readers = [r for r in self.capture.readers if isinstance(r.device.transport, NetTransport)]
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(None, lambda: [r.join(10.0) for r in readers])
         for key, box in box_hub.inboxes().items():

@@ -106,3 +106,10 @@ def test_every_serve_setting_is_a_flag_and_a_key():
     s = load_config(overrides={"serve": {"osc_port": 9000, "osc_allow": "127.0.0.1", "tls": False}}, env={})
     assert (s.serve.osc_port, s.serve.tls) == (9000, False)
     assert load_config(env={"PERFCAP_SERVE_MAX_PUSH_MB": "8"}).serve.client_limits().max_push_bytes == 8 << 20
+
+
+def test_the_default_limits_are_the_default_settings_limits():
+    """A service built in code with Limits() bounds its clients as one built from the default settings."""
+    from capture.app.serve.config import Limits, ServeConfig
+
+    assert ServeConfig().client_limits() == Limits()
