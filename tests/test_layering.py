@@ -56,9 +56,37 @@ def product_modules(packages: tuple[str, ...] = PACKAGES) -> list[Module]:
     return mods
 
 
+def _called_name(call: ast.Call) -> str:
+    f = call.func
+    return f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+
+
+def _constant_text(node: ast.AST) -> str | None:
+    """A string the code spells out: a literal, or literals joined with ``+`` (``"sim" + "_devices"``)."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return node.value
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+        a, b = _constant_text(node.left), _constant_text(node.right)
+        return None if a is None or b is None else a + b
+    return None
+
+
+#: calls that import a module named by a string
+IMPORT_CALLS = frozenset({"import_module", "__import__", "resolve_name", "run_module", "find_spec"})
+
+
 def project_imports(m: Module) -> set[str]:
-    """The project modules ``m`` imports (absolute or relative, at any depth of the file)."""
+    """The project modules ``m`` imports (absolute or relative, at any depth of the file, by statement or
+    by a call such as ``importlib.import_module("devices.base")``)."""
     out: set[str] = set()
+    importers = set(IMPORT_CALLS)   # and what they are called here: `from importlib import import_module as im`
+    for node in ast.walk(m.tree):
+        if isinstance(node, ast.ImportFrom) and node.module in ("importlib", "pkgutil", "runpy"):
+            importers |= {a.asname for a in node.names if a.name in IMPORT_CALLS and a.asname}
+        elif isinstance(node, ast.Assign) and isinstance(node.value, ast.Attribute | ast.Name):
+            leaf = node.value.attr if isinstance(node.value, ast.Attribute) else node.value.id
+            if leaf in IMPORT_CALLS:
+                importers |= {t.id for t in node.targets if isinstance(t, ast.Name)}
     for node in ast.walk(m.tree):
         if isinstance(node, ast.Import):
             out |= {a.name for a in node.names}
@@ -73,6 +101,10 @@ def project_imports(m: Module) -> set[str]:
                 mod = node.module or ""
             out.add(mod)
             out |= {f"{mod}.{a.name}" for a in node.names}  # `from capture import app` imports capture.app
+        elif isinstance(node, ast.Call) and _called_name(node) in importers and node.args:
+            name = _constant_text(node.args[0])
+            if name is not None:
+                out.add(name.replace(":", "."))
     return {i for i in out if i.split(".")[0] in PACKAGES}
 
 
@@ -103,6 +135,33 @@ def cycles_and_retarget_see_only_the_kernel(m: Module) -> list[str]:
             and i != "capture"]   # `from capture.quat import ...` also records "capture.quat.<name>"
 
 
+def devices_see_only_the_core(m: Module) -> list[str]:
+    """Device kinds, transports and codecs build on the core, never on the puppet or cycles."""
+    if not _within(m.name, "devices"):
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m))
+            if not (_within(i, "devices") or (_within(i, "capture") and not _within(i, "capture.app")))]
+
+
+def transports_never_import_codecs_or_kinds(m: Module) -> list[str]:
+    """A transport is a byte pipe: it knows nothing of what the bytes mean."""
+    if not _within(m.name, "devices.transports"):
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m))
+            if _within(i, "devices") and not (_within(i, "devices.transports") or _within(i, "devices.options")
+                                             or i == "devices")]
+
+
+def simulators_see_only_the_core_and_devices(m: Module) -> list[str]:
+    """Simulators encode through the devices' codecs and read sessions; they never reach the app, cycles
+    or the puppet."""
+    if not _within(m.name, "sim_devices"):
+        return []
+    return [f"{m.rel} imports {i}" for i in sorted(project_imports(m))
+            if not (_within(i, "sim_devices") or _within(i, "devices")
+                    or (_within(i, "capture") and not _within(i, "capture.app")))]
+
+
 def kernel_imports_only_the_kernel(m: Module) -> list[str]:
     if m.name not in KERNEL:
         return []
@@ -120,9 +179,21 @@ def _docstrings(tree: ast.Module) -> set[int]:
     return ids
 
 
-def _called_name(call: ast.Call) -> str:
-    f = call.func
-    return f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+#: the one entry-point group each registry may load
+REGISTRY_GROUPS = {"devices/__init__.py": "perfcap.devices", "devices/transports/__init__.py": "perfcap.transports",
+                   "capture/app/cli/sim.py": "perfcap.sims"}
+
+
+def _module_constants(tree: ast.Module) -> dict[str, str]:
+    out = {}
+    for node in tree.body:
+        if isinstance(node, ast.Assign | ast.AnnAssign) and node.value is not None:
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            text = _constant_text(node.value)
+            for t in targets:
+                if isinstance(t, ast.Name) and text is not None:
+                    out[t.id] = text
+    return out
 
 
 def product_never_reaches_sim_devices(m: Module) -> list[str]:
@@ -130,19 +201,41 @@ def product_never_reaches_sim_devices(m: Module) -> list[str]:
         return []
     bad = [f"{m.rel} imports {i}" for i in sorted(project_imports(m)) if _within(i, "sim_devices")]
     docs = _docstrings(m.tree)
+    consts = _module_constants(m.tree)
+    group = REGISTRY_GROUPS.get(m.rel)
     for node in ast.walk(m.tree):
         if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs \
                 and "sim_devices" in node.value:
             bad.append(f"{m.rel}:{node.lineno} names sim_devices in code ({node.value[:40]!r})")
-        if not isinstance(node, ast.Call) or m.rel in REGISTRIES:
+        names_ep = (isinstance(node, ast.Name) and node.id in ("entry_points", "EntryPoint", "EntryPoints")) or (
+            isinstance(node, ast.Attribute) and node.attr in ("entry_points", "EntryPoint", "EntryPoints"))
+        if names_ep and group is None:
+            bad.append(f"{m.rel}:{node.lineno} reaches entry points: only the registries may")
+        if not isinstance(node, ast.Call):
             continue
         called = _called_name(node)
-        if called == "entry_points":
-            bad.append(f"{m.rel}:{node.lineno} loads entry points: only the registries may")
-        elif called in ("import_module", "__import__") and not (
-                node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+        if called == "entry_points" and group is not None:
+            given = [k.value for k in node.keywords if k.arg == "group"]
+            text = None
+            if len(given) == 1:
+                v = given[0]
+                text = _constant_text(v) if not isinstance(v, ast.Name) else consts.get(v.id)
+            if text != group:
+                bad.append(f"{m.rel}:{node.lineno} loads entry points of another group than {group}")
+        if called in IMPORT_CALLS and group is None and not (node.args and _constant_text(node.args[0])):
             bad.append(f"{m.rel}:{node.lineno} imports a module named at run time: only the registries may")
     return bad
+
+
+def _is_time_module(node: ast.AST, time_names: set[str]) -> bool:
+    """``time`` under any name: an alias, ``importlib.import_module("time")``, ``sys.modules["time"]``."""
+    if isinstance(node, ast.Name):
+        return node.id in time_names
+    if isinstance(node, ast.Call) and _called_name(node) in IMPORT_CALLS and node.args:
+        return _constant_text(node.args[0]) == "time"
+    if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Attribute) and node.value.attr == "modules":
+        return _constant_text(node.slice) == "time"
+    return False
 
 
 def only_clock_reads_the_os_clock(m: Module) -> list[str]:
@@ -151,25 +244,47 @@ def only_clock_reads_the_os_clock(m: Module) -> list[str]:
     time_names: set[str] = set()       # what the time module is called here
     datetime_names: set[str] = set()   # ... and the datetime module, and its datetime/date classes
     bad = []
-    for node in ast.walk(m.tree):
+    nodes = list(ast.walk(m.tree))
+    for node in nodes:
         if isinstance(node, ast.Import):
             for a in node.names:
                 if a.name == "time":
                     time_names.add(a.asname or "time")
                 elif a.name == "datetime":
                     datetime_names.add(a.asname or "datetime")
-        elif isinstance(node, ast.ImportFrom) and node.module in ("time", "datetime") and not node.level:
+                elif a.name == "timeit":
+                    bad.append(f"{m.rel}:{node.lineno} imports timeit (its timers read the OS clock)")
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module in ("time", "datetime", "timeit"):
             for a in node.names:
-                if node.module == "time" and a.name in TIME_READS:
-                    bad.append(f"{m.rel}:{node.lineno} imports time.{a.name}")
-                elif node.module == "datetime" and a.name in ("datetime", "date"):
+                if node.module == "timeit" or (node.module == "time" and (a.name in TIME_READS or a.name == "*")):
+                    bad.append(f"{m.rel}:{node.lineno} imports {node.module}.{a.name}")
+                elif node.module == "datetime" and a.name in ("datetime", "date", "*"):
                     datetime_names.add(a.asname or a.name)
-    for node in ast.walk(m.tree):
+    for _ in range(3):   # names bound to those: `clk = time`, `d = datetime.datetime`, `t = import_module("time")`
+        for node in nodes:
+            if isinstance(node, ast.Assign):
+                targets = [t.id for t in node.targets if isinstance(t, ast.Name)]
+                if _is_time_module(node.value, time_names):
+                    time_names.update(targets)
+                elif (isinstance(node.value, ast.Name) and node.value.id in datetime_names) or (
+                        isinstance(node.value, ast.Attribute) and isinstance(node.value.value, ast.Name)
+                        and node.value.value.id in datetime_names and node.value.attr in ("datetime", "date")):
+                    datetime_names.update(targets)
+    for node in nodes:
+        if isinstance(node, ast.Call) and _called_name(node) == "getattr" and node.args \
+                and _is_time_module(node.args[0], time_names):
+            bad.append(f"{m.rel}:{node.lineno} reads the time module by name")
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "time" \
+                and not node.args:
+            owner = node.func.value   # an event loop's clock: loop.time(), asyncio.get_running_loop().time()
+            if (isinstance(owner, ast.Name) and "loop" in owner.id.lower()) or (
+                    isinstance(owner, ast.Call) and _called_name(owner) in ("get_running_loop", "get_event_loop")):
+                bad.append(f"{m.rel}:{node.lineno} reads the event loop's clock ({ast.unparse(node)})")
         if not isinstance(node, ast.Attribute):
             continue
         base = node.value
-        if isinstance(base, ast.Name) and base.id in time_names and node.attr in TIME_READS:
-            bad.append(f"{m.rel}:{node.lineno} reads the OS clock ({base.id}.{node.attr})")
+        if _is_time_module(base, time_names) and node.attr in TIME_READS:
+            bad.append(f"{m.rel}:{node.lineno} reads the OS clock ({ast.unparse(node)})")
         elif node.attr in DATETIME_READS and (
                 (isinstance(base, ast.Name) and base.id in datetime_names)
                 or (isinstance(base, ast.Attribute) and isinstance(base.value, ast.Name)
@@ -179,6 +294,7 @@ def only_clock_reads_the_os_clock(m: Module) -> list[str]:
 
 
 RULES = [core_imports_only_capture, domain_never_imports_the_app, cycles_and_retarget_see_only_the_kernel,
+         devices_see_only_the_core, transports_never_import_codecs_or_kinds, simulators_see_only_the_core_and_devices,
          kernel_imports_only_the_kernel, product_never_reaches_sim_devices, only_clock_reads_the_os_clock]
 
 
@@ -204,6 +320,17 @@ BROKEN = [
     (cycles_and_retarget_see_only_the_kernel, "cycles/edit.py", "from capture.bus import SampleBus\n"),
     (cycles_and_retarget_see_only_the_kernel, "retarget/vmc.py", "from devices.base import Device\n"),
     (kernel_imports_only_the_kernel, "capture/sample.py", "from capture.session import SessionReader\n"),
+    (core_imports_only_capture, "capture/bus.py", "import importlib\nm = importlib.import_module('devices.base')\n"),
+    (core_imports_only_capture, "capture/bus.py", "m = __import__('retarget' + '.puppet')\n"),
+    (domain_never_imports_the_app, "devices/base.py", "from importlib import import_module as im\nim('capture.app')\n"),
+    (cycles_and_retarget_see_only_the_kernel, "cycles/edit.py", "import importlib\nload = importlib.import_module\n"
+     "load('capture.bus')\n"),
+    (devices_see_only_the_core, "devices/phone.py", "from retarget.puppet import PuppetRetargeter\n"),
+    (devices_see_only_the_core, "devices/hid/generic.py", "import cycles\n"),
+    (transports_never_import_codecs_or_kinds, "devices/transports/serialport.py", "import devices.codecs.witmotion\n"),
+    (transports_never_import_codecs_or_kinds, "devices/transports/network.py", "from devices.phone import PhonePage\n"),
+    (simulators_see_only_the_core_and_devices, "sim_devices/loops.py", "from cycles import extract\n"),
+    (simulators_see_only_the_core_and_devices, "sim_devices/synth.py", "from capture.app.demo import DEMO_DEVICES\n"),
     (product_never_reaches_sim_devices, "capture/app/demo.py", "from sim_devices.phone_client import SimPagePhone\n"),
     (product_never_reaches_sim_devices, "capture/app/demo.py",
      "import importlib\nm = importlib.import_module('sim_devices.phone_client')\n"),
@@ -212,12 +339,30 @@ BROKEN = [
     (product_never_reaches_sim_devices, "capture/app/demo.py",
      "from importlib.metadata import entry_points\nmain = entry_points(group='perfcap.sims')['phone'].load()\n"),
     (product_never_reaches_sim_devices, "devices/phone.py", "MOD = 'sim_devices.phone_sim'\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py",
+     "from importlib.metadata import distribution\nep = distribution('perfcap').entry_points[0].load()\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py",
+     "import importlib.metadata as md\neps = md.entry_points\nmain = eps(group='perfcap.sims')\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py",
+     "from importlib.metadata import EntryPoint\nEntryPoint('p', 'x:main', 'perfcap.sims').load()\n"),
+    (product_never_reaches_sim_devices, "capture/app/demo.py", "import pkgutil\nf = pkgutil.resolve_name(NAME)\n"),
+    (product_never_reaches_sim_devices, "devices/__init__.py",
+     "from importlib.metadata import entry_points\nsims = entry_points(group='perfcap.sims')\n"),
     (only_clock_reads_the_os_clock, "capture/recorder.py", "import time as _t\nt = _t.monotonic()\n"),
     (only_clock_reads_the_os_clock, "devices/base.py", "from time import perf_counter\n"),
     (only_clock_reads_the_os_clock, "capture/app/cli/record.py", "import time\nt = time.time()\n"),
     (only_clock_reads_the_os_clock, "capture/app/serve/tls.py",
      "import datetime as _dt\nnow = _dt.datetime.now(_dt.UTC)\n"),
     (only_clock_reads_the_os_clock, "sim_devices/synth.py", "from datetime import datetime as D\nD.utcnow()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "import timeit\nt = timeit.default_timer()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "from time import *\nt = monotonic()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "import time\nclk = time\nt = clk.monotonic_ns()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "import time\nt = getattr(time, 'monotonic')()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "import importlib\nt = importlib.import_module('time').time()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "import sys\nt = sys.modules['time'].perf_counter()\n"),
+    (only_clock_reads_the_os_clock, "capture/app/cli/serve.py", "import asyncio\nasyncio.get_running_loop().time()\n"),
+    (only_clock_reads_the_os_clock, "capture/app/cli/serve.py", "t0 = loop.time()\n"),
+    (only_clock_reads_the_os_clock, "capture/bus.py", "import datetime\nd = datetime.datetime\nd.now()\n"),
 ]
 
 
