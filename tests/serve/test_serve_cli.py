@@ -173,7 +173,8 @@ def test_a_malformed_flag_is_one_line_naming_the_flag(tmp_path):
     p = subprocess.run([*SERVE, "--state-dir", str(tmp_path / "st"), "--port", "eighty"], cwd=ROOT,
                        env=_env(tmp_path), capture_output=True, text=True, timeout=60, check=False)
     assert p.returncode == 2 and "Traceback" not in p.stderr and p.stdout == ""
-    assert re.fullmatch(r"perfcap: error: command line: --port = 'eighty' must be an integer", p.stderr.strip()), p.stderr
+    expected = r"perfcap: error: command line: --port = 'eighty' must be an integer"
+    assert re.fullmatch(expected, p.stderr.strip()), p.stderr
     assert not (tmp_path / "st").exists()
 
 
