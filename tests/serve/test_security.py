@@ -26,8 +26,6 @@ from typing import Any
 import aiohttp
 import pytest
 from serve_helpers import DEADLINE_S
-from websockets.exceptions import ConnectionClosed
-from websockets.sync.client import connect as ws_connect_sync
 
 from capture.app.serve.config import Limits, ServeConfig
 from capture.app.serve.gateway import (
@@ -110,15 +108,26 @@ def test_refused_hello_closes_with_its_code_and_is_counted(serve, case):
     hello_timeout_s = Limits().hello_timeout_s + 1.0 if first is None else 0.3
     served = serve(limits=Limits(hello_timeout_s=hello_timeout_s))
     t0 = time.monotonic()
-    with ws_connect_sync(served.ws_url, ssl=_tls_context(served), open_timeout=DEADLINE_S,
-                         close_timeout=DEADLINE_S) as ws:
-        if first is not None:
-            ws.send(first)
-        with pytest.raises(ConnectionClosed) as ei:
-            ws.recv(timeout=DEADLINE_S)
-    assert ei.value.rcvd is not None, "the service dropped the connection without a close frame"
-    assert ei.value.rcvd.code == code, ei.value.rcvd
-    assert ei.value.rcvd.reason  # the page shows it to the user
+
+    async def go() -> tuple[aiohttp.WSMessage, aiohttp.WSMessage | None]:
+        # every step is bounded: a refusal that never comes fails the test instead of hanging it
+        async with served.client() as s:
+            ws = await s.ws_connect(served.ws_url, ssl=_tls_context(served), heartbeat=None,
+                                    timeout=aiohttp.ClientWSTimeout(ws_close=DEADLINE_S))
+            if isinstance(first, bytes):
+                await ws.send_bytes(first)
+            elif first is not None:
+                await ws.send_str(first)
+            msg = await ws.receive(timeout=DEADLINE_S)
+            after = None if ws.closed else await ws.receive(timeout=DEADLINE_S)
+            await ws.close()
+            return msg, after
+
+    msg, after = asyncio.run(asyncio.wait_for(go(), 3 * DEADLINE_S))
+    assert msg.type is aiohttp.WSMsgType.CLOSE, f"the service dropped the connection without a close frame: {msg}"
+    assert msg.data == code, msg
+    assert msg.extra  # the reason: the page shows it to the user
+    assert after is None or after.type is aiohttp.WSMsgType.CLOSED, after
     if first is None:
         assert time.monotonic() - t0 >= hello_timeout_s  # Limits.hello_timeout_s, not the default
     assert served.rejected() == {reason: 1}
@@ -129,11 +138,18 @@ def test_refused_hello_closes_with_its_code_and_is_counted(serve, case):
 
 def test_hello_with_token_but_bad_id_is_malformed(served):
     tok = served.token
-    with ws_connect_sync(served.ws_url, ssl=_tls_context(served), open_timeout=DEADLINE_S) as ws:
-        ws.send(json.dumps({"type": "hello", "v": 1, "id": "has spaces/and slashes", "token": tok}))
-        with pytest.raises(ConnectionClosed) as ei:
-            ws.recv(timeout=DEADLINE_S)
-    assert ei.value.rcvd.code == CLOSE_MALFORMED
+
+    async def go() -> aiohttp.WSMessage:
+        async with served.client() as s:
+            ws = await s.ws_connect(served.ws_url, ssl=_tls_context(served), heartbeat=None,
+                                    timeout=aiohttp.ClientWSTimeout(ws_close=DEADLINE_S))
+            await ws.send_str(json.dumps({"type": "hello", "v": 1, "id": "has spaces/and slashes", "token": tok}))
+            msg = await ws.receive(timeout=DEADLINE_S)
+            await ws.close()
+            return msg
+
+    msg = asyncio.run(asyncio.wait_for(go(), 3 * DEADLINE_S))
+    assert msg.type is aiohttp.WSMsgType.CLOSE and msg.data == CLOSE_MALFORMED, msg
     assert served.rejected() == {"malformed hello": 1}
     assert served.service.capture.devices == []
 
