@@ -1,6 +1,7 @@
 """HID report descriptors -> field layouts; a fast decoder and its inverse, the encoder.
 
-The descriptor is parsed by ``hid-tools`` (``hidtools.hid.ReportDescriptor``); this module turns
+The descriptor is parsed by ``hid-tools`` (``hidtools.hid.ReportDescriptor``), within the bounds
+of ``devices.hid.bounds`` (checked on its items before hid-tools lays them out); this module turns
 what it finds into a flat ``ReportLayout`` per input report ID (bit offset, size, signedness,
 logical and physical range, unit -> SI scale) once, and then decodes reports itself: one report
 with ``ReportLayout.decode`` (plain integer arithmetic), many at once with ``decode_many`` (numpy).
@@ -27,6 +28,7 @@ import numpy as np
 
 from capture.errors import ConfigError
 from devices.codecs.base import Codec
+from devices.hid.bounds import HID_MAX_DESCRIPTOR_SIZE, MAX_DATA_FIELD_BITS, check_items
 
 log = logging.getLogger(__name__)
 
@@ -256,6 +258,11 @@ def _layout_of(report: Any, *, with_id: bool) -> ReportLayout:
     for f in report.fields:
         if f.is_const:  # padding and constant bits
             continue
+        if not f.is_array and int(f.size) > MAX_DATA_FIELD_BITS:
+            # a Variable item without usages, merged by hid-tools into one field of Report Size x
+            # Report Count bits: padding to Linux (a field without usages is ignored), so here too
+            log.debug("%d bits without a usage at bit %d laid out as padding", int(f.size), int(f.start))
+            continue
         lmin, lmax = int(f.logical_min), int(f.logical_max)
         pmin, pmax = int(f.physical_min), int(f.physical_max)
         exp = int(f.unit_exp or 0)
@@ -287,15 +294,25 @@ def parse_descriptor(rdesc: bytes, source: str = "report descriptor") -> Descrip
     """Parse a report descriptor with hid-tools into layouts.
 
     Raises:
-        ConfigError: hid-tools cannot parse it, or it has no input report.
+        ConfigError: hid-tools cannot parse it, it leaves the bounds of ``devices.hid.bounds`` (the
+            item and its offset named), or it has no input report.
     """
     import hidtools.hid as hh
 
     data = bytes(rdesc)
     if not data:
         raise ConfigError(f"{source}: empty HID report descriptor", source=source)
+    if len(data) > HID_MAX_DESCRIPTOR_SIZE:  # refused before hid-tools copies it item by item
+        check_items([], len(data), source)
     try:
-        rd = hh.ReportDescriptor.from_bytes(list(data))
+        # what ReportDescriptor.from_bytes does, with the bounds checked between tokenising and laying out
+        items = hh._HidRDescItem.from_bytes(list(data))
+    except Exception as exc:  # hid-tools raises KeyError, IndexError, ParseError...
+        raise ConfigError(f"{source}: hid-tools cannot parse the HID report descriptor ({len(data)} bytes):"
+                          f" {type(exc).__name__}: {exc}", source=source) from exc
+    check_items(items, len(data), source)
+    try:
+        rd = hh.ReportDescriptor(items)
     except Exception as exc:  # hid-tools raises KeyError, IndexError, ParseError, AssertionError...
         raise ConfigError(f"{source}: hid-tools cannot parse the HID report descriptor ({len(data)} bytes):"
                           f" {type(exc).__name__}: {exc}", source=source) from exc
