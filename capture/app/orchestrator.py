@@ -248,6 +248,26 @@ class Capture:
                 reader.start()
             return dev
 
+    def remove_device(self, name: str, timeout: float | None = 5.0) -> Device | None:
+        """Take a device out of a capture (``perfcap serve`` gives up the slot of a phone that left):
+        its reader is told to stop (and waited for up to ``timeout`` seconds; 0 = not waited for), it
+        closes the device, and what it published stays on the bus and in the recording. The device may
+        be added again later (``add_device``), under its name, continuing its sequence numbers.
+
+        Returns:
+            the removed device, or None if no device has that name.
+        """
+        with self._lock:
+            dev = self.device(name)
+            if dev is None:
+                return None
+            self.devices.remove(dev)
+            readers = [r for r in self.readers if r.device is dev]
+            self.readers = [r for r in self.readers if r.device is not dev]
+        for r in readers:
+            r.stop(timeout)
+        return dev
+
     def device(self, name: str) -> Device | None:
         for d in self.devices:
             if d.name == name:

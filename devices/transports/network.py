@@ -31,17 +31,30 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+#: what a queued chunk costs besides its bytes (the Chunk, its bytes object, the deque slot), so that
+#: many tiny messages are bounded by the byte budget as well as a few large ones
+CHUNK_OVERHEAD = 160
+
+
 class Inbox:
     """Messages received for one remote device, waiting for its reader thread.
 
-    Bounded: a reader that cannot keep up makes ``put`` refuse (counted in ``dropped`` and logged),
-    never an unbounded queue.
+    Bounded in bytes: what is queued and not yet read (each chunk's bytes plus ``CHUNK_OVERHEAD``) stays
+    within ``max_bytes``, except that an empty inbox always takes one message (whose size the sender's
+    own bound limits). A message beyond the budget is refused by ``put`` (counted in ``dropped`` and
+    ``dropped_bytes``, and logged), never an unbounded queue; the caller decides what the sender hears.
     """
 
-    def __init__(self, key: str, max_chunks: int = 65536, label: str | None = None) -> None:
+    def __init__(self, key: str, max_chunks: int = 65536, label: str | None = None,
+                 max_bytes: int = 64 << 20) -> None:
         self.key = key
         self.label = label or key  # PROTOCOL/ID, for messages
         self.max_chunks = max_chunks
+        self.max_bytes = max_bytes
+        self.queued_bytes = 0
+        self.dropped_bytes = 0
+        self.last_ns: int | None = None  # arrival time of the newest message put
+        self.released = False            # its phone's slot was given up: the sender must be admitted again
         self._q: collections.deque[Chunk] = collections.deque()
         self._cv = threading.Condition(threading.Lock())
         self._waiting = False
@@ -79,15 +92,21 @@ class Inbox:
             self._cv.notify_all()
 
     def put(self, chunk: Chunk) -> bool:
-        """Queue a received message; False (counted) when the queue is full."""
+        """Queue a received message; False (counted) when it would exceed the byte budget or the count."""
+        cost = len(chunk.data) + CHUNK_OVERHEAD
         with self._cv:
-            if len(self._q) >= self.max_chunks:
+            q = self._q
+            if q and (self.queued_bytes + cost > self.max_bytes or len(q) >= self.max_chunks):
                 self.dropped += 1
+                self.dropped_bytes += len(chunk.data)
                 if self.dropped == 1 or self.dropped % 1000 == 0:
-                    log.error("%s: reader too slow, %d message(s) refused so far (queue of %d full)",
-                              self.key, self.dropped, self.max_chunks)
+                    log.error("%s: %d message(s) refused so far: %d bytes waiting to be decoded, budget %d"
+                              " (the reader is behind what the phone sends)", self.key, self.dropped,
+                              self.queued_bytes, self.max_bytes)
                 return False
-            self._q.append(chunk)
+            q.append(chunk)
+            self.queued_bytes += cost
+            self.last_ns = chunk.t_ns
             self.received += 1
             if self._waiting:
                 self._cv.notify()
@@ -106,7 +125,7 @@ class Inbox:
         with self._cv:
             q = self._q
             if q:
-                return q.popleft()
+                return self._pop()
             if self.finished:
                 raise EndOfStream(f"{self.key}: {self.reason}", source=self.key)
             if not self.connected:
@@ -117,12 +136,17 @@ class Inbox:
             finally:
                 self._waiting = False
             if q:
-                return q.popleft()
+                return self._pop()
             if self.finished:
                 raise EndOfStream(f"{self.key}: {self.reason}", source=self.key)
             if not self.connected:
                 raise DeviceIOError(self.not_connected(), source=self.key)
             return None
+
+    def _pop(self) -> Chunk:
+        c = self._q.popleft()
+        self.queued_bytes -= len(c.data) + CHUNK_OVERHEAD
+        return c
 
     def not_connected(self) -> str:
         return f"phone {self.label} is not connected ({self.reason})"
@@ -145,6 +169,14 @@ class Hub:
 
     def get(self, key: str) -> Inbox | None:
         return self._boxes.get(key)
+
+    def drop(self, key: str) -> Inbox | None:
+        """Forget ``key``'s inbox (its phone's slot was released); marked ``released`` for whoever holds it."""
+        with self._lock:
+            box = self._boxes.pop(key, None)
+        if box is not None:
+            box.released = True
+        return box
 
     def inboxes(self) -> dict[str, Inbox]:
         with self._lock:

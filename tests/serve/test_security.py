@@ -290,7 +290,8 @@ def test_message_flood_closes_with_4429_and_other_phone_loses_nothing(serve):
     assert served.rejected() == {"message rate exceeded": 1}
     box = served.service.phones.hub.get("page/flood-phone")
     accepted = box.received - 1  # minus its hello
-    assert 20 <= accepted <= 20 + 50.0 * elapsed + 1  # the burst, plus what the rate refilled meanwhile
+    # the burst less the hello (reconnecting costs a message), plus what the rate refilled meanwhile
+    assert 19 <= accepted <= 19 + 50.0 * elapsed + 1
     assert accepted < n  # the rest of the flood was refused
     _assert_lost_nothing(served, good)
 

@@ -24,19 +24,28 @@ _PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
 
 @dataclass
 class Limits:
-    """Bounds per client. ``rate_hz`` and ``burst`` are messages per second per connection (UDP: per
-    source host). ``Limits()`` are the limits the default settings give (``ServeConfig().client_limits()``)."""
+    """Bounds per client. ``rate_hz`` and ``burst`` are messages per second per phone (its id, kept
+    across reconnects); a source address may send ``max_connections_per_host`` times that. What a phone
+    may have waiting to be decoded is bounded in bytes (``inbox_bytes``). ``Limits()`` are the limits the
+    default settings give (``ServeConfig().client_limits()``)."""
 
     max_message_bytes: int = 64 * 1024   # WebSocket and UDP messages
     max_push_bytes: int = 4 << 20        # one Sensor Logger POST (a batch period of every sensor)
     rate_hz: float = 200.0
     burst: float = 400.0
-    max_connections: int = 64            # 2 x max_phones
-    max_connections_per_host: int = 4
+    max_connections: int = 64            # paired WebSockets in total: 2 x max_phones
+    max_connections_per_host: int = 4    # paired WebSockets (and HyperIMU TCP sockets) per address
     hello_timeout_s: float = 3.0
     max_pending_hello: int = 64    # connections waiting for their hello, in total
     max_malformed: int = 20        # per connection before it is closed
     ping_s: float = 1.0
+    inbox_bytes: int = 4 << 20     # per phone: received, not yet decoded (beyond: refused, closed with 4429)
+    max_sockets: int = 256         # TCP connections the phone port holds, in any state
+    max_sockets_per_host: int = 16
+    max_handshakes: int = 64       # connections in their TLS + HTTP handshake, in total
+    handshake_timeout_s: float = 10.0   # accept to first HTTP request (TLS included)
+    idle_timeout_s: float = 30.0   # an HTTP connection with no request in flight
+    phone_timeout_s: float = 60.0  # a phone gone (or silent) this long gives up its slot
 
 
 
@@ -72,7 +81,20 @@ class ServeConfig:
     max_message_kb: int = setting(64, "largest message accepted (KiB)", min=1, max=1 << 20)
     max_push_mb: int = setting(4, "largest Sensor Logger push accepted (MiB)", min=1, max=1024)
     max_rate: float = setting(200.0, "messages per second per client", min=0.1, max=1e6)
-    max_connections_per_host: int = setting(4, "connections one host may hold open", min=1, max=10_000)
+    max_connections_per_host: int = setting(4, "paired phone connections one address may hold open", min=1,
+                                            max=10_000)
+    max_inbox_mb: int = setting(4, "what one phone may have waiting to be decoded (MiB); beyond it its messages"
+                                " are refused and its connection closed (4429)", min=1, max=1024)
+    max_sockets: int = setting(256, "TCP connections the phone port holds, in any state", min=1, max=100_000)
+    max_sockets_per_host: int = setting(16, "TCP connections one address may hold on the phone port", min=1,
+                                        max=100_000)
+    max_handshakes: int = setting(64, "connections in their TLS and HTTP handshake at once", min=1, max=100_000)
+    handshake_timeout_s: float = setting(10.0, "seconds from connecting to the first HTTP request, TLS included",
+                                         min=0.1, max=3600.0)
+    idle_timeout_s: float = setting(30.0, "seconds an HTTP connection may stay open with no request", min=0.1,
+                                    max=86_400.0)
+    phone_timeout_s: float = setting(60.0, "seconds a phone may be gone or silent before its slot is given to"
+                                     " another phone", min=1.0, max=86_400.0)
     # -- not settings: for a service built in code ---------------------------------------------------
     token: str | None = None        # a fixed token (tests); None = the stored one
     limits: Limits | None = None    # exact limits; None = from the max_* settings
@@ -101,7 +123,10 @@ class ServeConfig:
             return self.limits
         return Limits(max_message_bytes=self.max_message_kb * 1024, max_push_bytes=self.max_push_mb << 20,
                       rate_hz=self.max_rate, burst=max(self.max_rate * 2, 1.0), max_connections=self.max_phones * 2,
-                      max_connections_per_host=self.max_connections_per_host)
+                      max_connections_per_host=self.max_connections_per_host, inbox_bytes=self.max_inbox_mb << 20,
+                      max_sockets=self.max_sockets, max_sockets_per_host=self.max_sockets_per_host,
+                      max_handshakes=self.max_handshakes, handshake_timeout_s=self.handshake_timeout_s,
+                      idle_timeout_s=self.idle_timeout_s, phone_timeout_s=self.phone_timeout_s)
 
     def check(self) -> None:
         """Every setting within its type and range, and the combinations that need each other.
@@ -122,6 +147,10 @@ class ServeConfig:
         if (self.hyperimu_port or self.hyperimu_tcp_port) and not AllowList(self.hyperimu_allow):
             raise ConfigError("HyperIMU cannot carry a pairing token, so --hyperimu-port needs --hyperimu-allow with "
                               "the phones' addresses (e.g. --hyperimu-allow 192.168.1.23)")
+        if self.max_sockets_per_host <= self.max_connections_per_host:
+            raise ConfigError(f"--max-sockets-per-host ({self.max_sockets_per_host}) must be more than"
+                              f" --max-connections-per-host ({self.max_connections_per_host}): a phone needs a"
+                              " connection for its page besides its WebSocket")
         self.phone_name_map()
 
 

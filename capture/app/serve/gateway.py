@@ -27,11 +27,14 @@ from typing import TYPE_CHECKING, Any, Protocol
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from capture.app.serve.config import Limits
-from capture.app.serve.security import AllowList, RateLimit, Rejections, TokenStore
+from capture.app.serve.connections import ConnectionGate, GatedSite
+from capture.app.serve.security import AllowList, RateBook, Rejections, TokenStore
 from capture.clock import MONOTONIC, Clock
 from capture.sample import Chunk, Direction
 
 if TYPE_CHECKING:
+    import ssl
+
     from devices.transports.network import Inbox
 
 log = logging.getLogger(__name__)
@@ -96,11 +99,41 @@ class Gateway:
         self._transports: list[Any] = []
         self._closing = False
         self._page = page_html()
-        self._http_limits: dict[str, RateLimit] = {}
+        lim = self.limits
+        # message rates by phone (PROTOCOL/ID) and by source address, kept across reconnects; an address
+        # may carry as many phones as it may hold connections
+        self.rates = RateBook(lim.rate_hz, lim.burst)
+        k = lim.max_connections_per_host
+        self.host_rates = RateBook(lim.rate_hz * k, lim.burst * k)
+        self.gate: ConnectionGate | None = None
+        self._tcp_open: dict[str, int] = {}
+
+    def _allow(self, key: str, host: str, t: int) -> bool:
+        """One message from phone ``key`` at address ``host``: within both their rates?"""
+        return self.rates.allow(key, t) and self.host_rates.allow(host, t)
+
+    def _over_budget(self, inbox: Inbox, host: str, what: str) -> None:
+        self.rejected.count("inbox byte budget exceeded", host,
+                            f"{what}: {inbox.queued_bytes} bytes waiting to be decoded, budget {inbox.max_bytes}")
+
+    def site(self, runner: web.BaseRunner, host: str, port: int, ssl_context: ssl.SSLContext | None) -> GatedSite:
+        """The phone port's site: its connections pass the gate (caps, TLS, handshake timeout)."""
+        factory = runner.server
+        assert factory is not None, "runner.setup() first"
+        self.gate = ConnectionGate(self.limits, self.rejected, ssl_context, factory)
+        return GatedSite(runner, host, port, self.gate)
+
+    @web.middleware
+    async def _arrived(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        if self.gate is not None:
+            self.gate.established(request.transport)  # a request came: the handshake is over
+        resp: web.StreamResponse = await handler(request)
+        return resp
 
     # -- HTTPS application -----------------------------------------------------------------------
     def app(self) -> web.Application:
-        app = web.Application(client_max_size=max(self.limits.max_message_bytes, self.limits.max_push_bytes))
+        app = web.Application(client_max_size=max(self.limits.max_message_bytes, self.limits.max_push_bytes),
+                              middlewares=[self._arrived])
         app.router.add_get("/", self._page_handler)
         app.router.add_get("/phone", self._page_handler)
         app.router.add_get("/ws/phone", self._ws_phone)
@@ -169,7 +202,7 @@ class Gateway:
             await ws.send_str(json.dumps({"type": "welcome", "device": name, "ping_s": lim.ping_s}))
             self.stats.accepted += 1
             ping_task = asyncio.get_running_loop().create_task(self._pinger(ws))
-            await self._pump(ws, inbox, host)
+            await self._pump(ws, inbox, host, f"page/{phone_id}")
         finally:
             if ping_task is not None:
                 ping_task.cancel()
@@ -216,6 +249,10 @@ class Gateway:
             self.rejected.count("malformed hello", host, "bad id")
             await ws.close(code=CLOSE_MALFORMED, message=b"hello.id must be 1-64 letters, digits, '.', '_' or '-'")
             return None
+        if not self._allow(f"page/{pid}", host, self.clock.now_ns()):  # reconnecting costs a message too
+            self.rejected.count("message rate exceeded", host, "at hello")
+            await ws.close(code=CLOSE_RATE, message=b"message rate exceeded")
+            return None
         info = {k: v for k, v in hello.items() if k != "token"}  # a session never holds the token
         info["peer"] = host
         return pid, info
@@ -226,11 +263,11 @@ class Gateway:
             with contextlib.suppress(ConnectionError, RuntimeError):
                 await ws.send_str(f'{{"type":"ping","h":{self.clock.now_ns()}}}')
 
-    async def _pump(self, ws: web.WebSocketResponse, inbox: Inbox, host: str) -> None:
+    async def _pump(self, ws: web.WebSocketResponse, inbox: Inbox, host: str, key: str) -> None:
         lim = self.limits
         clock = self.clock
         gen = self.tokens.generation
-        rate = RateLimit(lim.rate_hz, lim.burst, clock.now_ns())
+        allow = self._allow
         malformed = 0
         put = inbox.put
         stats = self.stats
@@ -246,14 +283,19 @@ class Gateway:
                 break
             t = clock.now_ns()
             if msg.type is WSMsgType.TEXT:
-                if not rate.allow(t):
+                if not allow(key, host, t):
                     self.rejected.count("message rate exceeded", host)
                     await ws.close(code=CLOSE_RATE, message=b"message rate exceeded")
                     break
                 if self.tokens.generation != gen:
                     await ws.close(code=CLOSE_TOKEN, message=b"the pairing token was rotated; pair again")
                     break
-                put(Chunk(msg.data.encode(), t, Direction.RX))
+                if not put(Chunk(msg.data.encode(), t, Direction.RX)):
+                    # the phone sends more than its device decodes: refused (counted) and closed with the
+                    # rate code, so the page retries later and the socket's buffers go too
+                    self._over_budget(inbox, host, key)
+                    await ws.close(code=CLOSE_RATE, message=b"sending faster than the service decodes")
+                    break
                 stats.messages += 1
             elif msg.type is WSMsgType.BINARY:
                 malformed += 1
@@ -284,12 +326,7 @@ class Gateway:
             return web.json_response({"error": "missing or wrong token: push to .../ingest/sensorlogger?token=..."},
                                      status=401)
         t = self.clock.now_ns()
-        rl = self._http_limits.get(host)
-        if rl is None:
-            if len(self._http_limits) > 4096:
-                self._http_limits.clear()
-            rl = self._http_limits[host] = RateLimit(self.limits.rate_hz, self.limits.burst, t)
-        if not rl.allow(t):
+        if not self.host_rates.allow(host, t):
             self.rejected.count("message rate exceeded", host, "sensorlogger")
             return web.json_response({"error": "too many requests"}, status=429)
         cap = self.limits.max_push_bytes
@@ -314,11 +351,16 @@ class Gateway:
             self.rejected.count("malformed message", host, "sensorlogger body without deviceId")
             return web.json_response({"error": "expected Sensor Logger JSON with deviceId"}, status=400)
         rid = re.sub(r"[^A-Za-z0-9._\-]", "-", did)[:64]
+        if not self.rates.allow(f"sensorlogger/{rid}", t):
+            self.rejected.count("message rate exceeded", host, "sensorlogger")
+            return web.json_response({"error": "too many requests"}, status=429)
         admitted = self.registry.admit("sensorlogger", rid, host, {"deviceId": did, "peer": host})
         if admitted is None:
             self.rejected.count("phone not admitted", host, "sensorlogger")
             return web.json_response({"error": "too many phones on this service"}, status=503)
-        admitted[1].put(Chunk(body, t, Direction.RX))
+        if not admitted[1].put(Chunk(body, t, Direction.RX)):
+            self._over_budget(admitted[1], host, "sensorlogger")
+            return web.json_response({"error": "sending faster than the service decodes; retry later"}, status=429)
         self.stats.messages += 1
         return web.json_response({"ok": True, "device": admitted[0]})
 
@@ -341,10 +383,18 @@ class Gateway:
     async def _tcp_client(self, protocol: str, allow: AllowList, reader: asyncio.StreamReader,
                           writer: asyncio.StreamWriter) -> None:
         host = str(writer.get_extra_info("peername")[0])
+        counted = False
         try:
             if not allow.allows(host):
                 self.rejected.count("source not allow-listed", host, protocol)
                 return
+            lim = self.limits
+            if (sum(self._tcp_open.values()) >= lim.max_connections
+                    or self._tcp_open.get(host, 0) >= lim.max_connections_per_host):
+                self.rejected.count("too many connections", host, f"{protocol} TCP")
+                return
+            self._tcp_open[host] = self._tcp_open.get(host, 0) + 1
+            counted = True
             admitted = self.registry.admit(protocol, host, host, {"peer": host})
             if admitted is None:
                 self.rejected.count("phone not admitted", host, protocol)
@@ -352,7 +402,7 @@ class Gateway:
             inbox = admitted[1]
             me = object()
             self._tcp_current[(protocol, host)] = me  # the newest connection of a host is its phone
-            rate = RateLimit(self.limits.rate_hz * 4, self.limits.burst * 4, self.clock.now_ns())
+            key = f"{protocol}-tcp/{host}"  # TCP delivers arbitrary pieces of the stream: 4 x the rate
             idle_s = max(10.0 * self.limits.ping_s, 10.0)
             while not self._closing:
                 try:
@@ -363,10 +413,12 @@ class Gateway:
                 if not data:
                     break
                 t = self.clock.now_ns()
-                if not rate.allow(t):
+                if not (self.rates.allow(key, t, 0.25) and self.host_rates.allow(host, t, 0.25)):
                     self.rejected.count("message rate exceeded", host, protocol)
                     break
-                inbox.put(Chunk(data, t, Direction.RX))
+                if not inbox.put(Chunk(data, t, Direction.RX)):
+                    self._over_budget(inbox, host, f"{protocol} TCP")
+                    break
                 self.stats.messages += 1
             if self._tcp_current.get((protocol, host)) is me:  # an older socket closing is not the phone leaving
                 del self._tcp_current[(protocol, host)]
@@ -374,6 +426,8 @@ class Gateway:
         except (ConnectionError, OSError) as exc:
             log.info("%s TCP client %s: %s", protocol, host, exc)
         finally:
+            if counted:
+                _dec(self._tcp_open, host)
             writer.close()
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
@@ -406,32 +460,37 @@ class _DatagramIngest(asyncio.DatagramProtocol):
         self.gw = gw
         self.protocol = protocol
         self.allow = allow
-        self._boxes: dict[str, tuple[Inbox, RateLimit]] = {}
+        self._boxes: dict[str, Inbox] = {}
 
     def datagram_received(self, data: bytes, addr: tuple[Any, ...]) -> None:
         gw = self.gw
         host = str(addr[0])
         t = gw.clock.now_ns()
-        entry = self._boxes.get(host)
-        if entry is None:
+        inbox = self._boxes.get(host)
+        if inbox is None or inbox.released:  # new, or its slot was given up while it was away
+            self._boxes.pop(host, None)
             if not self.allow.allows(host):
                 gw.rejected.count("source not allow-listed", host, self.protocol)
+                return
+            if len(data) > gw.limits.max_message_bytes:
+                gw.rejected.count("message too large", host, self.protocol)
                 return
             admitted = gw.registry.admit(self.protocol, host, host, {"peer": host})
             if admitted is None:
                 gw.rejected.count("phone not admitted", host, self.protocol)
                 return
-            entry = self._boxes[host] = (admitted[1], RateLimit(gw.limits.rate_hz, gw.limits.burst, t))
-        inbox, rate = entry
+            inbox = self._boxes[host] = admitted[1]
         if len(data) > gw.limits.max_message_bytes:
             gw.rejected.count("message too large", host, self.protocol)
             return
-        if not rate.allow(t):
+        if not gw._allow(f"{self.protocol}/{host}", host, t):
             gw.rejected.count("message rate exceeded", host, self.protocol)
             return
         if not inbox.connected:
-            inbox.connect(host)
-        inbox.put(Chunk(data, t, Direction.RX))
+            gw.registry.admit(self.protocol, host, host, {"peer": host})  # back: connected, heard from now
+        if not inbox.put(Chunk(data, t, Direction.RX)):
+            gw._over_budget(inbox, host, self.protocol)  # no connection to close: the datagram is dropped
+            return
         gw.stats.messages += 1
 
     def error_received(self, exc: Exception) -> None:

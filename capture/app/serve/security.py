@@ -6,7 +6,8 @@ bounds on message size, message rate and connections, with every refusal counted
   phone connections that used it are closed by the gateway).
 * ``AllowList``: source addresses (hosts or networks) for protocols that cannot carry a token (OSC,
   HyperIMU UDP). Empty means nobody.
-* ``RateLimit``: a token bucket per client.
+* ``RateLimit``: a token bucket; ``RateBook``: buckets by key (a phone's id, a source address) that
+  outlive connections, so a client that reconnects finds its bucket as it left it.
 * ``Rejections``: counts refusals by reason and logs the first of each reason and then every
   1000th, so a flood is visible without flooding the log.
 """
@@ -156,6 +157,51 @@ class RateLimit:
             return False
         self._level = level - cost
         return True
+
+
+class RateBook:
+    """Token buckets by key that outlive a connection: a client that closes and reconnects finds its
+    bucket as it left it (empty, if it was flooding), so reconnecting buys it nothing.
+
+    At most ``max_keys`` buckets are kept. Beyond that, buckets that have refilled to ``burst`` are
+    forgotten first (a full bucket is the same as a new one: nothing is lost), then the least recently
+    used ones (counted in ``evicted``: only a client spread over more than ``max_keys`` keys gets a
+    fresh bucket that way, and the per-address bucket still holds it).
+    """
+
+    def __init__(self, rate: float, burst: float, max_keys: int = 4096) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.max_keys = max_keys
+        self.evicted = 0
+        self._b: dict[str, RateLimit] = {}
+
+    def allow(self, key: str, t_ns: int, cost: float = 1.0) -> bool:
+        b = self._b.pop(key, None)  # re-inserted last: the dict's order is the least recently used first
+        if b is None:
+            if len(self._b) >= self.max_keys:
+                self._prune(t_ns)
+            b = RateLimit(self.rate, self.burst, t_ns)
+        self._b[key] = b
+        return b.allow(t_ns, cost)
+
+    def level(self, key: str, t_ns: int) -> float:
+        """Tokens ``key`` has at ``t_ns`` (``burst`` for a key never seen or forgotten)."""
+        b = self._b.get(key)
+        if b is None:
+            return self.burst
+        return min(b.burst, b._level + max(0, t_ns - b._t) * 1e-9 * b.rate)
+
+    def _prune(self, t_ns: int) -> None:
+        full = [k for k in self._b if self.level(k, t_ns) >= self.burst]
+        for k in full:
+            del self._b[k]
+        while len(self._b) >= self.max_keys:
+            del self._b[next(iter(self._b))]
+            self.evicted += 1
+
+    def __len__(self) -> int:
+        return len(self._b)
 
 
 class Rejections:

@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
 
     from capture.app.serve.config import ServeConfig
+    from devices.base import Device, DeviceReader
 
 log = logging.getLogger(__name__)
 
@@ -77,23 +78,40 @@ def _url_host(host: str) -> str:
 class PhoneDevices:
     """Which device each phone is: created on first sight, the same one on every reconnect.
 
+    A phone holds one of ``max_phones`` slots while it is known. A phone that has gone (its socket
+    closed, or nothing from it for ``phone_timeout_s``: datagram and HTTP-push phones have no socket
+    to close) gives its slot up: at once when a new phone needs one and every slot is taken (the
+    longest gone first), else after ``phone_timeout_s``. Its device then leaves the capture (what it
+    recorded stays); if it comes back, it gets the same device again, under the same name and
+    continuing its sequence numbers, as long as it is among the last ``max_phones`` released.
+
     Args:
         capture: the capture phones are added to.
         hub_name: the hub their ``net://`` transports read from.
         names: fixed device names by ``PROTOCOL/ID`` (e.g. ``{"page/5f2c...": "pocket"}``).
         options: device options per protocol (e.g. the OSC address map).
-        max_phones: how many phones may be added.
+        max_phones: how many phones may hold a slot at once.
+        inbox_bytes: each phone's byte budget (what it may have waiting to be decoded).
+        phone_timeout_s: how long a phone may be gone or silent before its slot is released.
+        clock: when phones were last heard of.
     """
 
     def __init__(self, capture: Capture, hub_name: str, names: Mapping[str, str] | None = None,
-                 options: Mapping[str, Mapping[str, Any]] | None = None, max_phones: int = 32) -> None:
+                 options: Mapping[str, Mapping[str, Any]] | None = None, max_phones: int = 32,
+                 inbox_bytes: int = 4 << 20, phone_timeout_s: float = 60.0, clock: Clock = MONOTONIC) -> None:
         self.capture = capture
         self.hub = hub(hub_name)
         self.names = dict(names or {})
         self.options = {k: dict(v) for k, v in (options or {}).items()}
         self.max_phones = max_phones
-        self.devices: dict[str, str] = {}  # PROTOCOL/ID -> device name
+        self.inbox_bytes = inbox_bytes
+        self.timeout_ns = int(phone_timeout_s * 1e9)
+        self.clock = clock
+        self.devices: dict[str, str] = {}  # PROTOCOL/ID -> device name, for the phones holding a slot
         self.peers: dict[str, str] = {}
+        self.seen: dict[str, int] = {}     # PROTOCOL/ID -> when last admitted (ns)
+        self.released = 0
+        self._retired: dict[str, tuple[Device, list[DeviceReader]]] = {}  # released, oldest first
         self._lock = threading.Lock()
 
     def _name_for(self, protocol: str, remote_id: str) -> str:
@@ -103,7 +121,7 @@ class PhoneDevices:
         base = f"{_NAME_PREFIX[protocol]}-" + re.sub(r"[^A-Za-z0-9]", "", remote_id)[:8].lower()
         if protocol in ("osc", "hyperimu"):
             base = f"{_NAME_PREFIX[protocol]}-" + re.sub(r"[^A-Za-z0-9]", "_", remote_id)[:40]
-        taken = {d.name for d in self.capture.devices}
+        taken = {d.name for d in self.capture.devices} | {d.name for d, _ in self._retired.values()}
         name, i = base, 2
         while name in taken:
             name, i = f"{base}-{i}", i + 1
@@ -112,31 +130,92 @@ class PhoneDevices:
     def admit(self, protocol: str, remote_id: str, peer: str, info: dict[str, Any]) -> tuple[str, Inbox] | None:
         key = f"{protocol}/{remote_id}"
         with self._lock:
-            box = self.hub.inbox(key)
             name = self.devices.get(key)
             if name is None:
-                if len(self.devices) >= self.max_phones:
+                if len(self.devices) >= self.max_phones and not self._release_one_gone():
                     return None
-                name = self._name_for(protocol, remote_id)
+                box = self.hub.inbox(key)
+                box.max_bytes = self.inbox_bytes
                 box.connect(peer)  # before the reader's first open
                 box.info = dict(info)
-                spec = DeviceSpec(url=f"net://{self.hub.name}/{key}", kind=PHONE_KINDS[protocol], name=name,
-                                  options=dict(self.options.get(protocol, {})))
                 try:
-                    self.capture.add_device(spec)
+                    dev = self._device_for(key, protocol, remote_id)
                 except CaptureError as exc:
                     log.error("phone %s (%s) cannot be added: %s", key, peer, exc)
                     box.disconnect(str(exc))
+                    self.hub.drop(key)
                     return None
+                name = dev.name
                 self.devices[key] = name
                 log.warning("phone %s connected from %s: device %s", key, peer, name)
             else:
+                box = self.hub.inbox(key)
                 if not box.connected:
                     log.warning("phone %s (device %s) is back, from %s", key, name, peer)
                 box.connect(peer)
                 box.info = dict(info)
             self.peers[name] = peer
+            self.seen[key] = self.clock.now_ns()
             return name, box
+
+    def _device_for(self, key: str, protocol: str, remote_id: str) -> Device:
+        old = self._retired.pop(key, None)
+        if old is not None:
+            dev, readers = old
+            if not any(r.alive for r in readers):
+                try:
+                    return self.capture.add_device(dev)  # the same device: its name and sequence numbers
+                except ConfigError:
+                    pass  # its name was taken meanwhile: a new device
+        spec = DeviceSpec(url=f"net://{self.hub.name}/{key}", kind=PHONE_KINDS[protocol],
+                          name=self._name_for(protocol, remote_id), options=dict(self.options.get(protocol, {})))
+        return self.capture.add_device(spec)
+
+    def _gone_since(self, key: str, now_ns: int) -> int | None:
+        """How long (ns) phone ``key`` has been gone, or None while it is there (connected and heard
+        from within the timeout, or still with messages to decode)."""
+        box = self.hub.get(key)
+        last = max(self.seen.get(key, 0), (box.last_ns or 0) if box is not None else 0)
+        if box is None:
+            return now_ns - last
+        if len(box):
+            return None
+        if box.connected:
+            if now_ns - last < self.timeout_ns:
+                return None
+            box.disconnect(f"nothing received for {self.timeout_ns / 1e9:g} s")
+        return now_ns - last
+
+    def _release_one_gone(self) -> bool:
+        now = self.clock.now_ns()
+        gone = [(g, k) for k in self.devices if (g := self._gone_since(k, now)) is not None]
+        if not gone:
+            return False
+        self._release(max(gone)[1], "a new phone needed its slot")
+        return True
+
+    def _release(self, key: str, why: str) -> None:
+        name = self.devices.pop(key)
+        self.seen.pop(key, None)
+        self.peers.pop(name, None)
+        self.hub.drop(key)
+        readers = [r for r in self.capture.readers if r.device.name == name]
+        dev = self.capture.remove_device(name, timeout=0.0)  # its reader stops on its own thread
+        if dev is not None:
+            self._retired[key] = (dev, readers)
+            while len(self._retired) > self.max_phones:
+                del self._retired[next(iter(self._retired))]
+        self.released += 1
+        log.warning("phone %s (device %s) released its slot: %s", key, name, why)
+
+    def sweep(self) -> list[str]:
+        """Release the slots of phones gone longer than the timeout; returns their keys."""
+        with self._lock:
+            now = self.clock.now_ns()
+            out = [k for k in self.devices if (g := self._gone_since(k, now)) is not None and g >= self.timeout_ns]
+            for k in out:
+                self._release(k, f"gone for {self.timeout_ns / 1e9:g} s")
+            return out
 
 
 @dataclass
@@ -187,13 +266,16 @@ class Service:
         if taken:
             self.capture.stop()
             raise ConfigError(f"phone name(s) {', '.join(sorted(taken))} are already names of configured devices")
-        self.phones = PhoneDevices(self.capture, self.hub_name, names, opts, config.max_phones)
-        self.gateway = Gateway(self.phones, self.tokens, config.client_limits(), clock)
+        limits = config.client_limits()
+        self.phones = PhoneDevices(self.capture, self.hub_name, names, opts, config.max_phones,
+                                   inbox_bytes=limits.inbox_bytes, phone_timeout_s=limits.phone_timeout_s, clock=clock)
+        self.gateway = Gateway(self.phones, self.tokens, limits, clock)
         self.endpoints = Endpoints()
         self.discovery: Discovery | None = None
         self.certificate: Certificate | None = None
         self._runners: list[web.AppRunner] = []
-        self._sites: list[web.TCPSite] = []
+        self._sites: list[web.BaseSite] = []
+        self._sweeper: asyncio.Task[None] | None = None
         self._stop: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._t0 = 0
@@ -287,9 +369,21 @@ class Service:
                 "devices": len(self.capture.devices),
                 "phones_connected": sum(1 for b in self.phones.hub.inboxes().values() if b.connected),
                 "messages": self.gateway.stats.messages, "rejected": self.gateway.rejected.as_dict(),
+                "connections": self._connections_info(),
+                "phone_slots": {"max": self.phones.max_phones, "held": len(self.phones.devices),
+                                "released": self.phones.released},
                 "token_required": True, "tls_fingerprint": self.endpoints.fingerprint,
                 "mdns": {"advertised": self.endpoints.advertised, "error": self.endpoints.mdns_error,
                          "found": [f.as_dict() for f in (self.discovery.found.values() if self.discovery else [])]}}
+
+    def _connections_info(self) -> dict[str, int]:
+        gate = self.gateway.gate
+        if gate is None:
+            return {}
+        st = gate.stats
+        return {"open": gate.open, "handshakes": gate.handshakes, "peak_open": st.peak_open,
+                "peak_handshakes": st.peak_handshakes, "accepted": st.accepted, "refused": st.refused,
+                "timed_out": st.timed_out, "tls_failed": st.tls_failed}
 
     def add_sensorserver(self, host: str, port: int, types: str | None = None, name: str | None = None) -> str:
         """Connect to a SensorServer phone (found by mDNS or given by the user); returns the device name."""
@@ -341,7 +435,8 @@ class Service:
             self.endpoints.certificate_created = self.certificate.created
         self.capture.start()
         try:
-            port = await self._site(self.gateway.app(), cfg.host, cfg.port, ssl_ctx, "phone page")
+            port = await self._site(self.gateway.app(), cfg.host, cfg.port, ssl_ctx, "phone page", gated=True)
+            self._sweeper = asyncio.get_running_loop().create_task(self._sweep_phones())
             scheme = "https" if cfg.tls else "http"
             self.endpoints.port = port
             self.endpoints.page_url = f"{scheme}://{_url_host(public)}:{port}/"
@@ -389,11 +484,28 @@ class Service:
         except OSError as exc:
             raise ConfigError(f"cannot listen for {what}: {exc}") from None
 
-    async def _site(self, app: web.Application, host: str, port: int, ssl_ctx: Any, what: str) -> int:
-        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
+    async def _sweep_phones(self) -> None:
+        """Give up the slots of phones gone longer than the phone timeout, every few seconds."""
+        period = min(5.0, self.gateway.limits.phone_timeout_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            try:
+                self.phones.sweep()
+            except CaptureError as exc:
+                log.error("releasing the slots of phones that left: %s", exc)
+
+    async def _site(self, app: web.Application, host: str, port: int, ssl_ctx: Any, what: str,
+                    gated: bool = False) -> int:
+        keepalive = self.gateway.limits.idle_timeout_s if gated else 75.0
+        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0,
+                               keepalive_timeout=keepalive)
         await runner.setup()
         self._runners.append(runner)
-        site = web.TCPSite(runner, host, port, ssl_context=ssl_ctx, backlog=128)
+        site: web.BaseSite
+        if gated:  # the phone port: connections capped, TLS run by the gate, handshakes timed out
+            site = self.gateway.site(runner, host, port, ssl_ctx)
+        else:
+            site = web.TCPSite(runner, host, port, ssl_context=ssl_ctx, backlog=128)
         self._sites.append(site)
         try:
             await site.start()
@@ -420,6 +532,11 @@ class Service:
     async def _close_network(self) -> None:
         # First stop accepting (a phone reconnecting right now must not slip in), then close the
         # phones' sockets, then wait for their handlers.
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._sweeper
+            self._sweeper = None
         for site in self._sites:
             with contextlib.suppress(Exception):
                 await site.stop()
