@@ -9,6 +9,15 @@ polls it, publishes onto the bus, and carries the reconnect policy: an unplugged
 with backoff and comes back with the same stream names, sequence numbering and calibration; the gap
 is an event in the session. A kind's module (``devices.witmotion``, ...) declares its streams,
 performs its handshake and maps codec frames to readings.
+
+No message can end a device: ``process_chunk`` is the one place where a chunk is decoded (codec,
+``frame_to_readings``, ``send_ticks``, stamping), and an exception anywhere in it is that chunk's
+error, counted in ``stats.decode_errors`` (and as a codec framing error, so summaries show it),
+logged with a rate limit and reported as a ``PROTOCOL_ERRORS`` event; only strict mode raises it,
+as a ``ProtocolError``. Readings the clock cannot carry are refused there too, each counted in
+``stats.bad_readings``: an infinite value, or device ticks outside the stream's clock (beyond its
+wrap, or beyond ``MAX_DEVICE_NS`` of device time). Codecs still refuse bad numbers themselves,
+with their reason; this is the net under them.
 """
 
 from __future__ import annotations
@@ -49,6 +58,11 @@ RECV_LOGGING_LEVEL = 9  # per-sample logging, below DEBUG
 #: A device-time step of this many nominal periods or more between two readings of a stream is a
 #: jump of the device clock, not lost readings: no gap is left in the sequence numbers for it.
 GAP_LIMIT: Final = 10_000
+#: the largest device time, ns, a reading may carry (about 146 years; int64 holds twice that)
+MAX_DEVICE_NS: Final = 2 ** 62
+#: decode errors logged at WARNING: the first ones, then one in this many (all are counted)
+_LOG_FIRST: Final = 5
+_LOG_EVERY: Final = 1000
 
 
 class DeviceState(enum.Enum):
@@ -76,6 +90,10 @@ class DeviceStats:
     reconnects: int = 0
     missing_time: int = 0
     lost_readings: int = 0
+    #: chunks whose decode raised (each dropped, counted, logged with a rate limit)
+    decode_errors: int = 0
+    #: readings refused: an infinite value, or device ticks the stream's clock cannot carry
+    bad_readings: int = 0
     last_seen_ns: int | None = None
 
 
@@ -227,15 +245,98 @@ class Device(abc.ABC, Generic[CodecT]):
         st.chunks += 1
         st.bytes += len(chunk.data)
         st.last_seen_ns = chunk.t_ns
-        errs_before = self.codec.stats.errors
-        frames = self.codec.feed(chunk.data)
-        if self.codec.stats.errors != errs_before:
+        cst = self.codec.stats
+        errs_before = cst.errors
+        stamped: list[Any] = []
+        try:
+            frames = self.codec.feed(chunk.data)
+            if frames:
+                readings = self._checked([r for f in frames for r in self.frame_to_readings(f)])
+                send = self.send_ticks(frames)
+                if send is not None and not self._ticks_ok(self._send_stream, send):
+                    self._bad_number(f"send time of {send!r:.40} ticks is outside the device clock")
+                    send = None
+                self._stamp_readings(readings, chunk.t_ns, stamped, send)
+        except ProtocolError:
+            if self.strict:
+                raise
+            self._decode_failed("protocol error", chunk)
+        except Exception as exc:  # one bad message must never end the device
+            if self.strict:
+                raise ProtocolError(f"{self.name}: decoding failed: {type(exc).__name__}: {exc}",
+                                    raw=bytes(chunk.data[:200])) from exc
+            self._decode_failed(f"{type(exc).__name__}: {exc}", chunk)
+        if cst.errors != errs_before:
             out.append(DeviceEvent(self.name, EventKind.PROTOCOL_ERRORS, chunk.t_ns,
-                                   f"{self.codec.stats.errors} errors, {self.codec.stats.skipped_bytes} bytes skipped"))
-        if not frames:
-            return out
-        readings = [r for f in frames for r in self.frame_to_readings(f)]
-        return self._stamp_readings(readings, chunk.t_ns, out, self.send_ticks(frames))
+                                   f"{cst.errors} errors, {cst.skipped_bytes} bytes skipped"))
+        out += stamped
+        return out
+
+    def _decode_failed(self, why: str, chunk: Chunk) -> None:
+        """Count a chunk whose decode raised as one error (the device goes on)."""
+        st = self.stats
+        st.decode_errors += 1
+        self.codec.stats.framing_errors += 1
+        n = st.decode_errors
+        if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+            log.warning("device %s: a chunk of %d bytes could not be decoded (%s); dropped, the device goes on "
+                        "(%d such chunk(s) so far, all counted)", self.name, len(chunk.data), why[:300], n)
+            log.debug("traceback of the decode error in device %s", self.name, exc_info=True)
+        else:
+            log.debug("device %s: chunk not decoded: %s", self.name, why[:300])
+
+    def _bad_number(self, why: str) -> bool:
+        """Count one refused reading (or send time); True."""
+        st = self.stats
+        st.bad_readings += 1
+        self.codec.stats.framing_errors += 1
+        n = st.bad_readings
+        if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+            log.warning("device %s: %s; refused (%d refused so far, all counted)", self.name, why, n)
+        else:
+            log.debug("device %s: %s; refused", self.name, why)
+        return True
+
+    def _ticks_ok(self, si: int, tk: Any) -> bool:
+        """Whether ``tk`` is an integer within stream ``si``'s clock."""
+        if type(tk) is not int:
+            if isinstance(tk, bool) or not isinstance(tk, (int, np.integer)):
+                return False
+            tk = int(tk)
+        lo, hi = self._tick_range[si]
+        return lo <= tk < hi
+
+    def _checked(self, readings: list[Reading]) -> list[Reading]:
+        """``readings`` without those the streams cannot carry (each counted): an infinite value
+        (NaN is "no value" and passes), ticks on a stream without a clock, or ticks outside its
+        clock's range."""
+        ok = True
+        tick_range = self._tick_range
+        for r in readings:
+            tot = sum(r.values)
+            tk = r.ticks
+            if tot - tot != 0.0 and any(math.isinf(v) for v in r.values):
+                ok = False
+                break
+            if tk is not None:
+                lo, hi = tick_range[r.stream]
+                if type(tk) is not int or not lo <= tk < hi:
+                    ok = False
+                    break
+        if ok:
+            return readings
+        good: list[Reading] = []
+        for r in readings:
+            tk = r.ticks
+            name = self._names[r.stream] if 0 <= r.stream < len(self._names) else f"stream {r.stream}"
+            if any(math.isinf(v) for v in r.values):
+                self._bad_number(f"{name}: a reading with an infinite value {r.values!r:.200}")
+            elif tk is not None and not self._ticks_ok(r.stream, tk):
+                self._bad_number(f"{name}: device time {tk!r:.40} ticks is outside the stream's clock "
+                                 f"[{tick_range[r.stream][0]}, {tick_range[r.stream][1]})")
+            else:
+                good.append(r)
+        return good
 
     def send_ticks(self, frames: list[Any]) -> int | None:
         """Raw device-clock ticks at which the message that carried ``frames`` was sent, when the
@@ -258,9 +359,16 @@ class Device(abc.ABC, Generic[CodecT]):
             self.codec.reset()
             log.info("device %s: %d bytes of an unfinished frame at the end of the take (counted as skipped)",
                      self.name, left)
-        readings = self.drain_readings()
-        if readings and self.stats.last_seen_ns is not None:
-            self._stamp_readings(readings, self.stats.last_seen_ns, out)
+        try:
+            readings = self._checked(self.drain_readings())
+            if readings and self.stats.last_seen_ns is not None:
+                self._stamp_readings(readings, self.stats.last_seen_ns, out)
+        except Exception as exc:  # the end of a take must not fail on one bad pending reading
+            if self.strict:
+                raise ProtocolError(f"{self.name}: decoding pending readings failed: {type(exc).__name__}: "
+                                    f"{exc}") from exc
+            self._decode_failed(f"pending readings: {type(exc).__name__}: {exc}", Chunk(b"", 0))
+            return []
         return out
 
     # -- batch path ------------------------------------------------------------------------------
@@ -297,7 +405,16 @@ class Device(abc.ABC, Generic[CodecT]):
             if tx.size:
                 stop = i + int(tx[0])
             part = run.slice(i, stop)
-            batch = self.decode_batch(part) if len(part) > 1 else None
+            try:
+                batch = self.decode_batch(part) if len(part) > 1 else None
+            except Exception as exc:  # the per-chunk path decodes that part, and counts its errors
+                log.debug("device %s: the batch decoder failed (%s: %s); decoding %d chunks one by one",
+                          self.name, type(exc).__name__, exc, len(part))
+                for k in range(i, stop):
+                    out += self.process_chunk(run[k])
+                i = stop
+                size = total
+                continue
             if batch is None:
                 if len(part) <= 1:
                     out += self.process_chunk(run[i])  # a bad or partial spot: byte-exact scalar path
@@ -350,6 +467,14 @@ class Device(abc.ABC, Generic[CodecT]):
         self._tick_steps = [round(s.clock.tick_hz / s.nominal_rate_hz) if s.clock is not None and s.nominal_rate_hz
                             else 1 for s in self.streams]
         self._tick_wraps = [s.clock.wrap_ticks if s.clock is not None else None for s in self.streams]
+        #: the ticks each stream's readings may carry, [lo, hi): a wrapping clock's counter range, else
+        #: what stays within +-MAX_DEVICE_NS of device time; none on a stream without a clock
+        self._tick_range: list[tuple[int, int]] = [
+            (0, 0) if s.clock is None else (0, s.clock.wrap_ticks) if s.clock.wrap_ticks
+            else (-int(MAX_DEVICE_NS * s.clock.tick_hz / 1e9), int(MAX_DEVICE_NS * s.clock.tick_hz / 1e9))
+            for s in self.streams]
+        #: the stream whose clock a message's send time (``send_ticks``) is on: the first clocked one
+        self._send_stream = next((i for i, s in enumerate(self.streams) if s.clock is not None), 0)
         self._seq = [0] * n
         self._last_ticks: list[int | None] = [None] * n
         self._last_dev: list[int | None] = [None] * n

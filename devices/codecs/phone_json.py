@@ -22,7 +22,10 @@ become NaN. ``encode`` is the inverse (NaN becomes ``null``), used by ``sim_devi
     host -> page: {"type":"welcome","device":NAME,"ping_s":s}, {"type":"ping","h":host_ns}
 
 Times ``t`` are ``event.timeStamp`` in ms since the page's ``performance.timeOrigin``. ``absolute``
-is 0/1 (``true``/``false`` is accepted too, being what the browser gives).
+is 0/1 (``true``/``false`` is accepted too, being what the browser gives). Every page time (rows'
+``t``, ``sent``, the pong's and hello's ``t``) must be in ``[0, PAGE_TIME_MAX)`` ms, ``orient`` an
+angle in [-360, 360] degrees, ``screen`` sizes and ``ping_s`` within ``[0, 1e6]``: a number out of
+range is refused with its reason, never passed on to the clock fit.
 
 **Sensor Logger** HTTP push (``SensorLoggerCodec``, name ``sensorlogger``)::
 
@@ -67,6 +70,10 @@ SL_MAX_ENTRIES = 20_000
 SL_MAX_NAMES = 64  # distinct unknown names tracked (more are lumped under "<other>")
 _MAX_ID = (1 << 53) - 1  # JSON integers that survive a JavaScript number
 _MAX_TIME = (1 << 63) - 1
+#: the largest page time, ms (31 years since the page's time origin)
+PAGE_TIME_MAX = 1e12
+#: the largest Sensor Logger entry time, UTC epoch ns (year 2116; device times stay within int64)
+SL_TIME_MAX = 1 << 62
 
 #: Sensor Logger sensors this codec decodes: name -> (value keys in tuple order, how many are required).
 SENSORLOGGER_FIELDS: dict[str, tuple[tuple[str, ...], int]] = {
@@ -193,9 +200,29 @@ def _num_or_null(v: Any, what: str) -> float:
     return NAN if v is None else _num(v, what)
 
 
-def _opt_num(obj: Mapping[str, Any], key: str) -> float | None:
+def _opt_num(obj: Mapping[str, Any], key: str, lo: float = -math.inf, hi: float = math.inf) -> float | None:
     v = obj.get(key)
-    return None if v is None else _num(v, key)
+    return None if v is None else _ranged(_num(v, key), key, lo, hi)
+
+
+def _ranged(v: float, what: str, lo: float, hi: float) -> float:
+    """``v`` if within [lo, hi]."""
+    if not lo <= v <= hi:
+        raise _Invalid(f"{what}={v!r} out of range [{lo:g}, {hi:g}]")
+    return v
+
+
+def _page_time(v: Any, what: str) -> float:
+    """A page time in ms, in [0, PAGE_TIME_MAX)."""
+    t = _num(v, what)
+    if not 0.0 <= t < PAGE_TIME_MAX:
+        raise _Invalid(f"{what}={t!r} out of range [0, {PAGE_TIME_MAX:g}) ms")
+    return t
+
+
+def _opt_page_time(obj: Mapping[str, Any], key: str, what: str) -> float | None:
+    v = obj.get(key)
+    return None if v is None else _page_time(v, what)
 
 
 def _int(v: Any, what: str, lo: int = 0, hi: int = _MAX_ID) -> int:
@@ -255,9 +282,11 @@ class PageCodec(MessageCodec):
         elif typ == "hello":
             frame = self._hello(obj)
         elif typ == "pong":
-            frame = PagePong(_int(obj.get("h"), "pong h", -_MAX_TIME - 1, _MAX_TIME), _num(obj.get("t"), "pong t"))
+            frame = PagePong(_int(obj.get("h"), "pong h", -_MAX_TIME - 1, _MAX_TIME),
+                             _page_time(obj.get("t"), "pong t"))
         elif typ == "welcome":
-            frame = PageWelcome(_text(obj.get("device"), "welcome device"), _num(obj.get("ping_s"), "ping_s"))
+            frame = PageWelcome(_text(obj.get("device"), "welcome device"),
+                                _ranged(_num(obj.get("ping_s"), "ping_s"), "ping_s", 0.0, 1e6))
         elif typ == "ping":
             frame = PagePing(_int(obj.get("h"), "ping h", -_MAX_TIME - 1, _MAX_TIME))
         else:
@@ -278,11 +307,12 @@ class PageCodec(MessageCodec):
         if screen is not None:
             if not isinstance(screen, list) or len(screen) != 2:
                 raise _Invalid("screen is not [width, height]")
-            scr = (_num(screen[0], "screen width"), _num(screen[1], "screen height"))
+            scr = (_ranged(_num(screen[0], "screen width"), "screen width", 0.0, 1e6),
+                   _ranged(_num(screen[1], "screen height"), "screen height", 0.0, 1e6))
         ua = obj.get("ua")
         token = obj.get("token")
         return PageHello(_text(obj.get("id"), "id", 128), platform, "" if ua is None else _text(ua, "ua"), scr,
-                         _opt_num(obj, "orient"), _opt_num(obj, "t"), v,
+                         _opt_num(obj, "orient", -360.0, 360.0), _opt_page_time(obj, "t", "hello t"), v,
                          None if token is None else _text(token, "token", 256))
 
     def _data(self, obj: Mapping[str, Any], data: bytes) -> PageData:
@@ -309,14 +339,11 @@ class PageCodec(MessageCodec):
                 except _Invalid as exc:
                     self._bad("framing", f'seq {seq}: row {i} of "{key}" {exc}; row dropped', 0, data[:200])
             arrays.append(tuple(good))
-        return PageData(seq, _opt_num(obj, "sent"), _opt_num(obj, "orient"), *arrays)
+        return PageData(seq, _opt_page_time(obj, "sent", "sent"), _opt_num(obj, "orient", -360.0, 360.0), *arrays)
 
     @staticmethod
     def _time(v: Any) -> float:
-        t = _num(v, "t")
-        if not 0.0 <= t < 1e12:
-            raise _Invalid(f"t={t!r} out of range")
-        return t
+        return _page_time(v, "t")
 
     def _motion_row(self, r: list[Any]) -> tuple[float, ...]:
         return (self._time(r[0]), *tuple(_num_or_null(x, MOTION_COLUMNS[k + 1]) for k, x in enumerate(r[1:])))
@@ -418,7 +445,7 @@ class SensorLoggerCodec(MessageCodec):
             self._unknown(name)
             return None
         keys, required = spec
-        t = _int(e.get("time"), "time", 0, _MAX_TIME)
+        t = _int(e.get("time"), "time", 0, SL_TIME_MAX)
         vals = e.get("values")
         if not isinstance(vals, dict):
             raise _Invalid(f"({name}) values is {_kind(vals)}, not an object")
@@ -469,9 +496,11 @@ __all__ = [
     "MOTION_COLUMNS",
     "ORIENTATION_COLUMNS",
     "PAGE_MAX_BYTES",
+    "PAGE_TIME_MAX",
     "SENSORLOGGER_FIELDS",
     "SL_MAX_BYTES",
     "SL_MAX_ENTRIES",
+    "SL_TIME_MAX",
     "TOUCH_COLUMNS",
     "PageCodec",
     "PageData",

@@ -28,7 +28,7 @@ SS_MAX_BYTES = 65536
 SS_MAX_VALUES = 64
 SS_MAX_TYPE = 128
 SS_TOUCH_ACTIONS = ("ACTION_DOWN", "ACTION_MOVE", "ACTION_UP")
-_MAX_NS = (1 << 63) - 1
+_MAX_NS = 1 << 62  # device times stay within int64 (devices.base.MAX_DEVICE_NS)
 
 _Reject = BadMessageError  # why an input is rejected
 

@@ -14,7 +14,9 @@ Lines end in ``\\n``; a ``\\r`` before it is dropped, surrounding blanks are ign
 
 With ``fmt="auto"`` a line containing ``:`` or ``=`` is key:value, any other line CSV.
 
-Numbers are what Python's ``float`` accepts. Bad lines are skipped and counted, never raised (except
+Numbers are what Python's ``float`` accepts, but infinite: ``inf`` and ``1e999`` (which overflows)
+are refused as framing errors, since no sensor reads them; ``nan`` stays "no value" (as an absent
+key:value field is, and as ``encode`` writes one). Bad lines are skipped and counted, never raised (except
 in strict mode): a line longer than ``max_line`` bytes, non-UTF-8 bytes, a mapped field that is not
 a number, a wrong number of CSV fields, a repeated or missing required key, or a device-time value
 out of range are *framing errors*; a line with no number in it at all (a CSV header, a boot banner
@@ -175,7 +177,9 @@ class TextLineCodec(Codec):
                             except ValueError:
                                 pass
                             else:
-                                if tf is None or 0.0 <= vals[tf] < tmax:
+                                # all finite (NaN, infinities and sums that overflow go to ``_line``)
+                                tot = sum(vals)
+                                if tot - tot == 0.0 and (tf is None or 0.0 <= vals[tf] < tmax):
                                     out.append(TextFrame(vals, full))
                                     off += len(line) + 1
                                     self.last_format = CSV
@@ -252,6 +256,10 @@ class TextLineCodec(Codec):
                     bad = next(self.columns[k] or "?" for k in self._csv_idx if not _is_number(fields[k]))
                     self._reject(raw, off, f"field {bad!r} is not a number")
                 return
+            for k, v in enumerate(vals):
+                if math.isinf(v):
+                    self._reject(raw, off, f"field {self.fields[k]!r} is {v!r}, not a finite number")
+                    return
             present = self._all
         else:
             vals = [math.nan] * len(self.fields)
@@ -265,6 +273,9 @@ class TextLineCodec(Codec):
                     v = float(m.group(2))
                 except ValueError:
                     self._reject(raw, off, f"value of {m.group(1).decode()!r} is not a number: {m.group(2)[:20]!r}")
+                    return
+                if math.isinf(v):
+                    self._reject(raw, off, f"value of {m.group(1).decode()!r} is {v!r}, not a finite number")
                     return
                 bit = 1 << fi
                 if present & bit:
