@@ -73,9 +73,12 @@ class Option:
         return v
 
     def range_text(self) -> str:
+        """The bounds in words (``within [1, 5]``, ``at least 0``); ``any value`` for an option without any."""
         if self.min is not None and self.max is not None:
             return f"within [{self.min:g}, {self.max:g}]"
-        return f"at least {self.min:g}" if self.min is not None else f"at most {self.max:g}"
+        if self.min is not None:
+            return f"at least {self.min:g}"
+        return f"at most {self.max:g}" if self.max is not None else "any value"
 
     def coerce(self, key: str, value: Any, where: str) -> Any:
         """:meth:`parse`, with a bad value said as a URL or device option (``rate='x' is not NUMBER``).
