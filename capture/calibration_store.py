@@ -8,7 +8,10 @@ from here, and every session keeps a copy of the calibrations it used, so a repl
 exactly those (not whatever is in the store by then).
 
 Files are written atomically (temporary file, then rename); a damaged file is a ``ConfigError``
-naming it, never a silent identity calibration.
+naming it, never a silent identity calibration. A stored document (a file here, or a copy in a
+session) is read only when it is at most ``MAX_DOCUMENT_BYTES`` long and nests at most
+``MAX_DOCUMENT_DEPTH`` deep (a real one is about 2 KB and 4 levels), and a file only when it is a
+regular file, so a hostile one costs neither memory nor time.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from capture.bounded_io import InputLimitError, json_loads_bounded, read_bounded
 from capture.calibration import ImuCalibration
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError
@@ -32,6 +36,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 FORMAT = "perfcap.calibration.v1"
+MAX_DOCUMENT_BYTES = 1 << 20
+MAX_DOCUMENT_DEPTH = 32
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -72,7 +78,9 @@ def parse_calibration_document(text: str | bytes, where: str) -> tuple[dict[str,
         ConfigError: not a perfcap calibration, or its content is invalid.
     """
     try:
-        doc = json.loads(text)
+        doc = json_loads_bounded(text, MAX_DOCUMENT_BYTES, MAX_DOCUMENT_DEPTH)
+    except InputLimitError as exc:
+        raise ConfigError(f"{where}: not read as a perfcap calibration file: {exc}", source=where) from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{where}: not a perfcap calibration file (not JSON: {exc})", source=where) from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or "calibration" not in doc:
@@ -102,9 +110,11 @@ class CalibrationStore:
         """
         p = self.path_for(identity)
         try:
-            text = p.read_bytes()
+            text = read_bounded(p, MAX_DOCUMENT_BYTES)
         except FileNotFoundError:
             return None
+        except InputLimitError as exc:
+            raise ConfigError(f"{p}: not read as a calibration: {exc}", source=str(p)) from None
         except OSError as exc:
             raise ConfigError(f"{p}: cannot read the calibration: {exc.strerror or exc}", source=str(p)) from None
         return parse_calibration_document(text, str(p))[1]
@@ -142,9 +152,9 @@ class CalibrationStore:
             return out
         for p in sorted(self.dir.glob("*.json")):
             try:
-                doc, _ = parse_calibration_document(p.read_bytes(), str(p))
+                doc, _ = parse_calibration_document(read_bounded(p, MAX_DOCUMENT_BYTES), str(p))
                 out.append((p, doc, None))
-            except (ConfigError, OSError) as exc:
+            except (ConfigError, OSError, InputLimitError) as exc:
                 out.append((p, None, str(exc)))
         return out
 

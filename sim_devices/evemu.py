@@ -4,6 +4,8 @@
 ``A: code min max fuzz flat [res]``; ``.events``: ``E: sec.usec type code value`` (type and code
 hex, value decimal). ``#`` starts a comment. ``frames`` groups events into SYN_REPORT frames, each
 with its time and the events in it, which the HID simulators encode into one report per frame.
+A file is read only when it is a regular file of at most ``MAX_TRACE_BYTES`` with lines of at most
+``MAX_LINE``; anything else is a ``TraceError``, as is a time that is not finite seconds.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
+from capture.bounded_io import InputLimitError, read_text_bounded
 from capture.errors import TraceError
 
 EV_SYN, EV_KEY, EV_REL, EV_ABS, EV_MSC = 0, 1, 2, 3, 4
@@ -53,12 +56,18 @@ class Frame:
     events: list[tuple[int, int, int]]
 
 
+#: the largest recording read (the evemu traces in ../shared/traces are 2 kB..300 kB) and its longest line
+MAX_TRACE_BYTES = 64 << 20
+MAX_LINE = 64 << 10
+#: event times beyond this many seconds (about 300 years) are not a recording's
+MAX_TIME_S = 1e10
+
+
 def _lines(path: str) -> list[tuple[int, str]]:
     try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise TraceError(f"cannot read evemu file: {exc}", path=path) from exc
+        text = read_text_bounded(path, MAX_TRACE_BYTES, MAX_LINE)
+    except (OSError, InputLimitError, UnicodeDecodeError) as exc:
+        raise TraceError(f"cannot read evemu file: {exc}", path=path) from None
     out = []
     for n, raw in enumerate(text.splitlines(), 1):
         line = raw.split("#", 1)[0].strip()
@@ -108,6 +117,8 @@ def parse_events(path: str) -> list[Frame]:
             if len(parts) != 4:
                 raise ValueError(f"expected 'E: sec.usec type code value', got {len(parts)} fields")
             t = float(parts[0])
+            if not abs(t) < MAX_TIME_S:  # nan, inf and 1e300 too
+                raise ValueError(f"time {parts[0]} is not a time in seconds")
             typ, code, value = int(parts[1], 16), int(parts[2], 16), int(parts[3])
         except ValueError as exc:
             raise TraceError(f"malformed event line {line!r} ({exc})", path=path, line=n) from None

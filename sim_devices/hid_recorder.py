@@ -12,7 +12,10 @@ output, skipped)::
 
 Lines holding only hex bytes continue the ``R:`` or ``E:`` line before them (captures pasted
 from documents are often wrapped). Files that hold only ``E:`` lines (``.events.txt``) take the
-descriptor (and ``I:``/``N:``) from another capture named by the option ``rdesc_file``.
+descriptor (and ``I:``/``N:``) from another capture named by the option ``rdesc_file``. A capture
+is read only when it is a regular file of at most ``MAX_TRACE_BYTES`` with lines of at most
+``MAX_LINE``, its descriptors and reports no longer than Linux allows, its times finite seconds;
+anything else is a ``TraceError`` naming the file and line.
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ import re
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from capture.bounded_io import InputLimitError, read_text_bounded
 from capture.errors import TraceError
+from devices.hid.bounds import HID_MAX_BUFFER_SIZE, HID_MAX_DESCRIPTOR_SIZE
 from devices.options import Option
 from sim_devices.hid_sim import HidResponder, trace_path
 
@@ -29,6 +34,12 @@ if TYPE_CHECKING:
     from collections.abc import Iterator, Mapping
 
 BUSES = {3: "usb", 5: "bluetooth", 0x18: "i2c", 0x1C: "spi"}
+#: the largest capture read, its longest line, the longest R: (HID_MAX_DESCRIPTOR_SIZE) and E:
+#: (HID_MAX_BUFFER_SIZE) items, and the largest time (s) taken for one
+MAX_TRACE_BYTES = 64 << 20
+MAX_LINE = 64 << 10
+MAX_ITEM = {"R": HID_MAX_DESCRIPTOR_SIZE, "E": HID_MAX_BUFFER_SIZE}
+MAX_TIME_S = 1e10
 _HEX_ONLY = re.compile(r"^(?:[0-9a-fA-F]{2}\s*)+$")
 
 
@@ -59,10 +70,9 @@ def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
         TraceError: unreadable file, malformed line, or a length that does not match the bytes.
     """
     try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TraceError(f"cannot read hid-recorder file: {exc}", path=path) from exc
+        text = read_text_bounded(path, MAX_TRACE_BYTES, MAX_LINE)
+    except (OSError, InputLimitError, UnicodeDecodeError) as exc:
+        raise TraceError(f"cannot read hid-recorder file: {exc}", path=path) from None
     devices: dict[int, RecordedDevice] = {}
     cur = devices.setdefault(0, RecordedDevice(0))
     # an R:/E: item being assembled across wrapped lines: [tag, line, declared length, bytes, time]
@@ -76,6 +86,9 @@ def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
         pending = None
         if len(data) != length:
             raise TraceError(f"{tag}: line says {length} bytes but holds {len(data)}", path=path, line=n)
+        if len(data) > MAX_ITEM[tag]:
+            raise TraceError(f"{tag}: {len(data)} bytes, more than a {'report descriptor' if tag == 'R' else 'report'}"
+                             f" can be ({MAX_ITEM[tag]})", path=path, line=n)
         if tag == "R":
             cur.rdesc = bytes(data)
         else:
@@ -108,6 +121,8 @@ def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
                 cur.bus, cur.vid, cur.pid = (int(x, 16) for x in parts[:3])
             elif tag == "E":
                 t = float(parts[0])
+                if not abs(t) < MAX_TIME_S:  # nan, inf and 1e300 too
+                    raise ValueError(t)
                 pending = ["E", n, int(parts[1]), bytearray(_hex(parts[2:], path, n, "E")), t]
             else:
                 raise TraceError(f"unknown line type {tag!r} (expected D R N P I E)", path=path, line=n)

@@ -16,11 +16,13 @@ reading so tests can measure clock-sync error end to end. What the simulator kno
 
 from __future__ import annotations
 
+import io
 from collections import deque
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from capture.bounded_io import InputLimitError, longest_line, read_bounded
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError, EndOfStream
 from capture.sample import Chunk
@@ -260,13 +262,32 @@ if TYPE_CHECKING:  # the ability it declares, checked by mypy
     _truth: type[SimulatorTruth] = SynthTransport
 
 
+#: the largest IMU CSV played (the x-io recording in the traces is 1.4 MB) and its longest line
+MAX_CSV_BYTES = 32 << 20
+MAX_CSV_LINE = 4096
+
+
 def _load_imu_csv(path: str, url: str) -> np.ndarray:
-    """Rows of (time s, gyro xyz deg/s, accel xyz g) from an x-io/Fusion-layout CSV with a header row."""
+    """Rows of (time s, gyro xyz deg/s, accel xyz g) from an x-io/Fusion-layout CSV with a header row.
+
+    Only a regular file of at most ``MAX_CSV_BYTES`` with lines of at most ``MAX_CSV_LINE`` bytes is
+    read (``csv=/dev/zero``, a FIFO, or a file with no line ends is refused, not read for ever).
+
+    Raises:
+        ConfigError: unreadable, beyond those bounds, or not such a CSV.
+    """
     try:
-        with open(path, "rb") as f:
-            data = np.genfromtxt(f, delimiter=",", skip_header=1, usecols=range(7), invalid_raise=True)
+        raw = read_bounded(path, MAX_CSV_BYTES)
     except OSError as exc:
         raise ConfigError(f"{url}: cannot read {path}: {exc.strerror or exc}", source=url) from None
+    except InputLimitError as exc:
+        raise ConfigError(f"{url}: not played: {exc}", source=url) from None
+    longest = longest_line(raw)
+    if longest > MAX_CSV_LINE:
+        raise ConfigError(f"{url}: {path} has a line of {longest} bytes (an IMU CSV line is at most {MAX_CSV_LINE})",
+                          source=url)
+    try:
+        data = np.genfromtxt(io.BytesIO(raw), delimiter=",", skip_header=1, usecols=range(7), invalid_raise=True)
     except ValueError as exc:
         raise ConfigError(f"{url}: {path} is not an IMU CSV (time, gyro x/y/z, accel x/y/z): {exc}",
                           source=url) from None

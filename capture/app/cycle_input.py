@@ -1,11 +1,13 @@
 """What ``perfcap cycle`` extracts from: a perfcap session's stream or a CSV file (perfcap exports,
 Sensor Logger, phyphox and hand-made files: BOM, ``,`` ``;`` or tab separators, trailing delimiters,
 seconds or epoch-nanosecond time columns), read into times and values; the extraction timed and its
-report drawn."""
+report drawn. A CSV is read only when it is a regular file within ``MAX_CSV_BYTES``, ``MAX_CSV_LINE``
+and ``MAX_CSV_COLUMNS``; anything else is a ``ConfigError`` that says which bound it passed."""
 
 from __future__ import annotations
 
 import csv
+import io
 import os
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -13,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from capture.app.export import TIMING_COLUMNS as EXPORT_TIMING_COLUMNS
+from capture.bounded_io import InputLimitError, read_text_bounded
 from capture.clock import MONOTONIC
 from capture.errors import ConfigError
 from capture.session import MCAP_MAGIC
@@ -21,6 +24,12 @@ if TYPE_CHECKING:
     from capture.sample import SampleBatch
     from capture.session import SessionReader
     from cycles import Cycle
+
+#: the CSV files read (a 200 Hz IMU export of 20 minutes is about 20 MB; reading one costs about
+#: 10 times its size in memory), their longest line and their widest row
+MAX_CSV_BYTES = 32 << 20
+MAX_CSV_LINE = 64 << 10
+MAX_CSV_COLUMNS = 1024
 
 CSV_TIME_COLUMNS = ("seconds_elapsed", "t", "time_s", "t_s", "time[s]", "time (s)", "time", "timestamp")
 
@@ -124,17 +133,23 @@ def _session_stream_input(reader: SessionReader, stream: str, b: SampleBatch, co
 
 
 def csv_cycle_input(path: str, columns: list[str] | None) -> CycleInput:
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:   # (a BOM is not part of the first name)
-            head = f.read(8192)
-            f.seek(0)
-            try:
-                dialect: Any = csv.Sniffer().sniff(head, delimiters=",;\t")
-            except csv.Error:
-                dialect = csv.excel
-            rows = [r for r in csv.reader(f, dialect) if r and any(c.strip() for c in r)]
+    try:   # (utf-8-sig: a BOM is not part of the first name)
+        text = read_text_bounded(path, MAX_CSV_BYTES, MAX_CSV_LINE, encoding="utf-8-sig")
+        try:
+            dialect: Any = csv.Sniffer().sniff(text[:8192], delimiters=",;\t")
+        except csv.Error:
+            dialect = csv.excel
+        rows: list[list[str]] = []
+        for fields in csv.reader(io.StringIO(text, newline=""), dialect):
+            if len(fields) > MAX_CSV_COLUMNS:
+                raise InputLimitError(f"{path} has a row of {len(fields)} fields; at most {MAX_CSV_COLUMNS} are read")
+            if fields and any(c.strip() for c in fields):
+                rows.append(fields)
+        del text
     except UnicodeDecodeError:
         raise ConfigError(f"{path} is neither a perfcap session nor a text CSV file") from None
+    except InputLimitError as exc:
+        raise ConfigError(f"{exc} (for a longer take, extract from its perfcap session)") from None
     except (OSError, csv.Error) as exc:
         raise ConfigError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
     if not rows:
