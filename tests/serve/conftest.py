@@ -30,15 +30,16 @@ if TYPE_CHECKING:
 
 @pytest.fixture
 def serve(tmp_path: Path) -> Iterator[Callable[..., Served]]:
-    """Factory: ``serve(**ServeConfig overrides)`` -> a started ``Served``; all stopped at teardown."""
+    """Factory: ``serve(**ServeConfig overrides)`` -> a started ``Served``; all stopped at teardown.
+    ``clock=`` gives the service a clock (a ``ManualClock`` to hold rates and timeouts still)."""
     started: list[Served] = []
 
-    def make(**overrides: Any) -> Served:
+    def make(clock: Any = None, **overrides: Any) -> Served:
         cfg: dict[str, Any] = {"host": "127.0.0.1", "port": 0, "control_port": 0, "mdns": False,
                                "state_dir": str(tmp_path / "state"), "token": TOKEN,
                                "sessions_dir": str(tmp_path), "limits": Limits()}
         cfg.update(overrides)
-        svc = Service(ServeConfig(**cfg))
+        svc = Service(ServeConfig(**cfg)) if clock is None else Service(ServeConfig(**cfg), clock=clock)
         th = ServiceThread(svc).start()
         s = Served(svc, th, tmp_path)
         started.append(s)
