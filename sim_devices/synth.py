@@ -17,6 +17,7 @@ reading so tests can measure clock-sync error end to end. What the simulator kno
 from __future__ import annotations
 
 import io
+import warnings
 from collections import deque
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -265,13 +266,18 @@ if TYPE_CHECKING:  # the ability it declares, checked by mypy
 #: the largest IMU CSV played (the x-io recording in the traces is 1.4 MB) and its longest line
 MAX_CSV_BYTES = 32 << 20
 MAX_CSV_LINE = 4096
+#: what a recorded IMU can hold: times (s), gyroscope (deg/s) and accelerometer (g) magnitudes, rates
+MAX_CSV_TIME_S = 1e10
+MAX_CSV_VALUE = 1e6
+MIN_CSV_RATE, MAX_CSV_RATE = 0.1, 100_000.0
 
 
 def _load_imu_csv(path: str, url: str) -> np.ndarray:
     """Rows of (time s, gyro xyz deg/s, accel xyz g) from an x-io/Fusion-layout CSV with a header row.
 
     Only a regular file of at most ``MAX_CSV_BYTES`` with lines of at most ``MAX_CSV_LINE`` bytes is
-    read (``csv=/dev/zero``, a FIFO, or a file with no line ends is refused, not read for ever).
+    read (``csv=/dev/zero``, a FIFO, or a file with no line ends is refused, not read for ever), and
+    only finite times and readings within ``MAX_CSV_TIME_S``, ``MAX_CSV_VALUE`` and the rates are played.
 
     Raises:
         ConfigError: unreadable, beyond those bounds, or not such a CSV.
@@ -287,13 +293,22 @@ def _load_imu_csv(path: str, url: str) -> np.ndarray:
         raise ConfigError(f"{url}: {path} has a line of {longest} bytes (an IMU CSV line is at most {MAX_CSV_LINE})",
                           source=url)
     try:
-        data = np.genfromtxt(io.BytesIO(raw), delimiter=",", skip_header=1, usecols=range(7), invalid_raise=True)
-    except ValueError as exc:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # "Empty input file" and the like: refused, not a warning
+            data = np.genfromtxt(io.BytesIO(raw), delimiter=",", skip_header=1, usecols=range(7), invalid_raise=True)
+    except (ValueError, UserWarning) as exc:
         raise ConfigError(f"{url}: {path} is not an IMU CSV (time, gyro x/y/z, accel x/y/z): {exc}",
                           source=url) from None
     data = np.atleast_2d(data)
     if data.shape[0] == 0 or data.shape[1] < 7 or not np.all(np.isfinite(data)):
         raise ConfigError(f"{url}: {path} has no usable rows (need time, gyro x/y/z, accel x/y/z)", source=url)
-    if np.any(np.diff(data[:, 0]) <= 0):
+    dt = np.diff(data[:, 0])
+    if np.any(dt <= 0):
         raise ConfigError(f"{url}: {path}: times must increase", source=url)
+    if np.abs(data[:, 0]).max() >= MAX_CSV_TIME_S or np.abs(data[:, 1:7]).max() > MAX_CSV_VALUE:
+        raise ConfigError(f"{url}: {path}: times beyond {MAX_CSV_TIME_S:g} s or readings beyond"
+                          f" {MAX_CSV_VALUE:g} deg/s or g (not an IMU recording)", source=url)
+    if dt.size and not MIN_CSV_RATE <= 1.0 / float(np.median(dt)) <= MAX_CSV_RATE:
+        raise ConfigError(f"{url}: {path}: readings {float(np.median(dt)):g} s apart (an IMU CSV has"
+                          f" {MIN_CSV_RATE:g}..{MAX_CSV_RATE:g} per second)", source=url)
     return data

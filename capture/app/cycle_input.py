@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import stat
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
@@ -217,6 +218,8 @@ def read_cycle_input(path: str, stream: str | None, columns: list[str] | None) -
     if os.path.isdir(path):
         raise ConfigError(f"{path} is a directory, not a session or CSV file")
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would block the open, /dev/zero never end
+            raise ConfigError(f"{path} is not a regular file (a session or a CSV file is)")
         with open(path, "rb") as f:
             magic = f.read(len(MCAP_MAGIC))
     except OSError as exc:
