@@ -23,6 +23,8 @@ if TYPE_CHECKING:
 #: Version of the JSON calibration format written by :meth:`ImuCalibration.to_json`.
 FORMAT_VERSION = 1
 FORMAT_NAME = "perfcap.imu_calibration"
+#: no bias, offset, hard iron or matrix entry of a real IMU comes near this (in any unit used)
+MAX_ABS_VALUE = 1e6
 
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
@@ -33,24 +35,29 @@ _Z3: Vec3 = (0.0, 0.0, 0.0)
 def _vec(name: str, v: Any, source: str | None) -> Vec3:
     try:
         a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:  # (an integer past float range)
         raise ConfigError(f"calibration field {name!r} must be 3 numbers, got {v!r}", source=source) from exc
     if a.shape != (3,):
         raise ConfigError(f"calibration field {name!r} must be 3 numbers, got shape {a.shape}", source=source)
     if not np.all(np.isfinite(a)):
         raise ConfigError(f"calibration field {name!r} has a non-finite value: {a.tolist()}", source=source)
+    if np.abs(a).max() > MAX_ABS_VALUE:
+        raise ConfigError(f"calibration field {name!r} has a value beyond {MAX_ABS_VALUE:g}: {a.tolist()}",
+                          source=source)
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
 def _mat(name: str, v: Any, source: str | None) -> Mat3:
     try:
         a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:  # (an integer past float range)
         raise ConfigError(f"calibration field {name!r} must be a 3x3 matrix, got {v!r}", source=source) from exc
     if a.shape != (3, 3):
         raise ConfigError(f"calibration field {name!r} must be a 3x3 matrix, got shape {a.shape}", source=source)
     if not np.all(np.isfinite(a)):
         raise ConfigError(f"calibration field {name!r} has a non-finite value", source=source)
+    if np.abs(a).max() > MAX_ABS_VALUE:  # (and its cube below stays a float)
+        raise ConfigError(f"calibration field {name!r} has a value beyond {MAX_ABS_VALUE:g}", source=source)
     det = float(np.linalg.det(a))
     if abs(det) < 1e-6 * max(1e-300, float(np.abs(a).max()) ** 3):
         raise ConfigError(f"calibration field {name!r} is singular (det={det:.3g})", source=source)
