@@ -27,9 +27,11 @@ w x y z from qw qx qy qz), ``total_acc`` (Android's ``totalacceleration``, gravi
 ``baro`` (pressure in Pa, relative altitude in m; irregular). The device clock is the entries'
 ``time``, UTC epoch ns of the phone's wall clock. ``messageId`` gaps count as lost messages; a
 repeated or older ``messageId`` (a retried POST, a late one) is counted and dropped, since its samples
-were delivered already or would go back in time. The ``platform`` option sets the sign convention:
-``standardised`` (default) and ``android`` take values as sent (Android convention: lying flat,
-screen up, gravity and acceleration read +z, as an accelerometer does); ``ios`` negates
+were delivered already or would go back in time; so is one implausibly far ahead (``MAX_ID_JUMP``,
+``id_jumps``), which would otherwise make every later message late, unless the next one follows it.
+The ``platform`` option sets the sign convention: ``standardised`` (default) and ``android`` take
+values as sent (Android convention: lying flat, screen up, gravity and acceleration read +z, as an
+accelerometer does); ``ios`` negates
 acceleration, gravity and total acceleration (iOS sends them with the opposite sign when
 "Standardise Units & Frames" is off, the app's default). Gyroscope and magnetometer are the same on
 both; the attitude is passed on as the app reports it (its reference frame differs by platform).
@@ -96,6 +98,8 @@ class PhonePage(Device[PageCodec]):
     #: stall of seconds from starting clock epochs (the page clock itself never steps)
     clock_sync_options: ClassVar[dict[str, Any]] = {"window_s": 60.0, "step_s": 0.05}
     one_fit_per_clock = True
+    #: a data seq step larger than this is a new numbering (counted in ``seq_restarts``), not lost messages
+    MAX_SEQ_JUMP = 1_000_000
 
     def __init__(self, name: str, transport: Transport, options: Mapping[str, Any] | None = None,
                  clock: Clock = MONOTONIC, strict: bool = False) -> None:
@@ -153,7 +157,10 @@ class PhonePage(Device[PageCodec]):
     def _data(self, f: PageData) -> list[Reading]:
         last = self._last_seq
         if last is not None:
-            if f.seq > last + 1:
+            if f.seq - last > self.MAX_SEQ_JUMP:  # not a gap of lost messages: a new numbering
+                self.seq_restarts += 1
+                log.info("phone %s: data seq jumped from %d to %d", self.name, last, f.seq)
+            elif f.seq > last + 1:
                 self.lost_messages += f.seq - last - 1
                 log.debug("phone %s: %d message(s) lost before seq %d", self.name, f.seq - last - 1, f.seq)
             elif f.seq <= last:
@@ -223,6 +230,10 @@ class SensorLoggerPhone(Device[SensorLoggerCodec]):
     one_fit_per_clock = True
     #: recent messageIds remembered to tell a duplicate from a late message
     RECENT_IDS = 256
+    #: a messageId this far ahead of the last is not believed on its own (one bad message would
+    #: make every later one "late"): it is dropped and counted in ``id_jumps``, unless the next
+    #: message continues from it (within ``RECENT_IDS``), which then starts the new numbering
+    MAX_ID_JUMP = 100_000
 
     def __init__(self, name: str, transport: Transport, options: Mapping[str, Any] | None = None,
                  clock: Clock = MONOTONIC, strict: bool = False) -> None:
@@ -238,6 +249,8 @@ class SensorLoggerPhone(Device[SensorLoggerCodec]):
         self._session: str | None = None
         self._last_id: int | None = None
         self._recent: collections.deque[int] = collections.deque(maxlen=self.RECENT_IDS)
+        self.id_jumps = 0
+        self._jump: int | None = None  # the last messageId refused as a jump
         s = -1.0 if self.opts["platform"] == "ios" else 1.0
         # name -> (stream, per-value factors, how many values)
         self._map: dict[str, tuple[int, tuple[float, ...], int]] = {
@@ -305,7 +318,16 @@ class SensorLoggerPhone(Device[SensorLoggerCodec]):
                     self.late_messages += 1
                     log.info("sensorlogger %s: message %d arrived after %d; dropped", self.name, mid, last)
                 return False
-            if mid > last + 1:
+            if mid - last > self.MAX_ID_JUMP:
+                jump = self._jump
+                self._jump = mid
+                if jump is None or not 0 < mid - jump <= self.RECENT_IDS:
+                    self.id_jumps += 1
+                    log.warning("sensorlogger %s: messageId jumped from %d to %d; message dropped (the numbering "
+                                "moves there only if the next message follows it)", self.name, last, mid)
+                    return False
+                log.warning("sensorlogger %s: messageIds go on from %d (they were at %d)", self.name, mid, last)
+            elif mid > last + 1:
                 self.lost_messages += mid - last - 1
                 log.debug("sensorlogger %s: %d message(s) lost before %d", self.name, mid - last - 1, mid)
         self._last_id = mid
@@ -314,12 +336,12 @@ class SensorLoggerPhone(Device[SensorLoggerCodec]):
 
     def health(self) -> dict[str, Any]:
         """Base counters plus message bookkeeping (``lost_messages``, ``duplicate_messages``,
-        ``late_messages``, ``sessions``) and entry counts the streams do not take
+        ``late_messages``, ``id_jumps``, ``sessions``) and entry counts the streams do not take
         (``unknown_entries`` from the codec, ``unused_entries``)."""
         h = super().health()
         codec = self.codec
         h.update(lost_messages=self.lost_messages, duplicate_messages=self.duplicate_messages,
-                 late_messages=self.late_messages, sessions=self.sessions,
+                 late_messages=self.late_messages, id_jumps=self.id_jumps, sessions=self.sessions,
                  unknown_entries=sum(codec.unknown_names.values()), unknown_names=dict(codec.unknown_names),
                  unused_entries=sum(self.unused.values()))
         return h
