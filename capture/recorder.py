@@ -4,6 +4,11 @@ It buffers items per channel and encodes them as column blocks every ``encode_in
 so no single encoding step holds the interpreter lock for long), and closes an MCAP chunk and
 flushes the file every ``flush_interval_s`` (half of ``max_loss_s``), so a recorder killed with
 SIGKILL loses at most ``max_loss_s`` of data.
+
+A write that fails (disk full, file size limit, I/O error) ends the recording: the file is cut back
+to the last flush, ``failed`` says why, ``saved`` says what the file holds (per stream, exactly: the
+counts at the last flush), ``received`` what came in, and ``on_failed`` is called once (the capture
+stops the take, ``perfcap serve`` stops that recording). Nothing more is buffered after a failure.
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from capture.bus import EVERYTHING, Subscriber
 from capture.clock import MONOTONIC, Clock
@@ -29,6 +34,9 @@ from capture.sample import (
     StreamInfo,
 )
 from capture.session import DeviceRecord, SessionWriter
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +75,16 @@ class SessionRecorder(Subscriber):
         self._next_flush = now + self.flush_ns
         self.counts: dict[str, int] = {}
         self.raw_chunks = 0
+        #: samples per stream that came in (saved or not)
+        self.received: dict[str, int] = {}
+        #: samples per stream and raw chunks in the file as of the last flush (after a clean close: all)
+        self.saved: dict[str, int] = {}
+        self.saved_raw_chunks = 0
+        #: ``saved`` is exact (False after a failure whose file could not be cut back: at least that)
+        self.saved_exact = True
         self.failed: SessionError | None = None
+        #: called once, from the recorder's thread, when the recording fails
+        self.on_failed: Callable[[SessionError], None] | None = None
         self.summary_extra: dict[str, Any] = {}
         #: set by whoever subscribes the recorder, so the summary can include its drop count
         self.subscription: Any = None
@@ -93,12 +110,17 @@ class SessionRecorder(Subscriber):
     def on_item(self, item: Any) -> None:
         t = type(item)
         if t is Sample or t is SampleBatch:
+            self.received[item.stream] = self.received.get(item.stream, 0) + (1 if t is Sample else len(item))
+            if self.failed is not None:
+                return  # counted as received, never saved
             lst = self._smp.get(item.stream)
             if lst is None:
                 lst = self._smp[item.stream] = []
                 if item.stream not in self._channels:
                     self._undeclared(item)
             lst.append(item)
+        elif self.failed is not None:
+            return
         elif t is DeviceChunk or t is DeviceChunks:
             lst2 = self._raw.get(item.device)
             if lst2 is None:
@@ -131,9 +153,7 @@ class SessionRecorder(Subscriber):
             with self._wlock:
                 self._tick_locked(now)
         except Exception as exc:
-            self.failed = exc if isinstance(exc, SessionError) else SessionError(
-                f"internal error while writing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
-            log.error("recorder: %s; recording stopped, data up to the last flush is kept", self.failed)
+            self._fail(exc, "writing")
 
     def _tick_locked(self, now: int) -> None:
         if now >= self._next_encode:
@@ -141,7 +161,44 @@ class SessionRecorder(Subscriber):
             self._next_encode = now + self.encode_ns
         if now >= self._next_flush:
             self.writer.flush()
+            self._saved_now()
             self._next_flush = now + self.flush_ns
+
+    def _saved_now(self) -> None:
+        """Everything encoded so far is on disk (the writer just flushed)."""
+        self.saved = dict(self.counts)
+        self.saved_raw_chunks = self.raw_chunks
+
+    def _fail(self, exc: Exception, doing: str) -> None:
+        """The recording ends: the file is cut back to the last flush and closed; say what it holds."""
+        self.failed = exc if isinstance(exc, SessionError) else SessionError(
+            f"internal error while {doing} {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
+        self._raw, self._smp, self._ctrl = {}, {}, []
+        self.writer.abort()
+        if not self.writer.cut_back:
+            self._count_saved_from_file()
+        held = sum(self.saved.values())
+        log.error("recorder: %s; recording stopped: the file keeps %s%d samples (up to its last flush), the rest"
+                  " is not saved", self.failed, "" if self.saved_exact else "at least ", held)
+        cb = self.on_failed
+        if cb is not None:
+            try:
+                cb(self.failed)
+            except Exception:
+                log.exception("recorder: the failure handler failed")
+
+    def _count_saved_from_file(self) -> None:
+        """The file could not be cut back: count what it holds by reading it."""
+        from capture.session import SessionReader
+
+        try:
+            r = SessionReader(self.writer.path)
+            self.saved = {s: len(r.samples(s)) for s in r.streams if s in self.counts}
+            self.saved_raw_chunks = sum(len(r.raw_run(d)) for d in r.devices)
+        except Exception as exc:
+            self.saved_exact = False
+            log.warning("recorder: %s cannot be read back (%s); it holds at least what its last flush had",
+                        self.writer.path, exc)
 
     def encode(self, now: int) -> None:
         """Turn everything buffered into blocks in the writer."""
@@ -197,10 +254,13 @@ class SessionRecorder(Subscriber):
                 self.summary_extra["recorder_max_pending"] = st.max_pending
             self.writer.close({"samples": self.counts, "raw_chunks": self.raw_chunks,
                                "raw_bytes": self.writer.bytes_raw, **self.summary_extra})
+            self._saved_now()
         except Exception as exc:
-            self.failed = exc if isinstance(exc, SessionError) else SessionError(
-                f"internal error while closing {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
-            log.error("recorder: %s", self.failed)
+            self._fail(exc, "closing")
+
+    def not_saved(self) -> dict[str, int]:
+        """Samples per stream that came in but are not in the file."""
+        return {s: n - self.saved.get(s, 0) for s, n in self.received.items() if n > self.saved.get(s, 0)}
 
 
 def _identity_dict(identity: DeviceIdentity) -> dict[str, Any]:

@@ -28,12 +28,12 @@ import socket
 import struct
 import threading
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, BinaryIO, ClassVar
+from typing import TYPE_CHECKING, Any, BinaryIO, ClassVar, cast
 
 import numpy as np
 
 from capture.clock import MONOTONIC
-from capture.errors import SessionError, SessionExistsError
+from capture.errors import SessionError
 from capture.sample import (
     NO_TIME,
     Chunk,
@@ -43,6 +43,7 @@ from capture.sample import (
     SampleBatch,
     StreamInfo,
 )
+from capture.session_file import MCAP_MAGIC, PendingSession, resolve_target
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -51,7 +52,6 @@ log = logging.getLogger(__name__)
 
 FORMAT_VERSION = "1"
 RAW_ENCODING = "perfcap.raw.v1"
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 SAMPLES_ENCODING = "perfcap.samples.v1"
 
 RAW_SCHEMA_DOC = (
@@ -251,33 +251,67 @@ class DeviceRecord:
 class SessionWriter:
     """Writes one session file.
 
+    The file is created safely (see ``capture.session_file``): under a temporary name until its
+    header is on disk, then linked into place, so a recorder killed while starting leaves nothing
+    under ``path``; exclusively unless ``overwrite``, which replaces only a perfcap session (or an
+    empty file). When a write fails (disk full, I/O error), the file is cut back to the last
+    ``flush`` and ``failed`` says why; nothing more is written.
+
     Args:
-        path: the ``.mcap`` file to create.
-        overwrite: replace an existing file (otherwise ``SessionExistsError``).
+        path: the ``.mcap`` file to create (with ``base_dir``: a name inside it).
+        overwrite: replace an existing perfcap session (otherwise ``SessionExistsError``).
         chunk_bytes: MCAP chunk size before compression.
         fsync: fsync the file at every flush (survives power loss, not only a killed process).
         meta: extra session metadata (command line, config).
+        base_dir: confine ``path`` to this directory, never following a link on the way (``perfcap
+            serve``'s sessions directory).
 
     Raises:
-        SessionExistsError: ``path`` exists and ``overwrite`` is false.
+        ConfigError: the path is malformed or leaves ``base_dir`` (see ``resolve_target``).
+        SessionExistsError: ``path`` exists and ``overwrite`` is false, or it is not a perfcap session.
         SessionError: the file cannot be created.
     """
 
     def __init__(self, path: str, *, overwrite: bool = False, chunk_bytes: int = 4 << 20, fsync: bool = True,
-                 meta: dict[str, str] | None = None, wall_time_s: float | None = None) -> None:
+                 meta: dict[str, str] | None = None, wall_time_s: float | None = None,
+                 base_dir: str | None = None) -> None:
+        self.fsync = fsync
+        target = resolve_target(path, base_dir)
+        try:
+            pending = PendingSession(target, overwrite)
+        except BaseException:
+            target.close()
+            raise
+        self.path = pending.path
+        self._f = pending.file
+        self.closed = False
+        try:
+            self._start(chunk_bytes, meta, wall_time_s)
+            self._sync()   # the header on disk before the file has its name
+            pending.publish()
+        except OSError as exc:
+            pending.discard()
+            raise SessionError(f"cannot create {self.path}: {exc.strerror or exc}", path=self.path) from exc
+        except BaseException:
+            pending.discard()
+            raise
+
+    @property
+    def failed(self) -> OSError | None:
+        """The write error that stopped this file, if any (the file is then cut back to the last flush)."""
+        return self._f.error
+
+    def _sync(self) -> None:
+        self._f.flush()
+        if self.fsync:
+            self._f.sync()
+        self._f.commit()
+
+    def _start(self, chunk_bytes: int, meta: dict[str, str] | None, wall_time_s: float | None) -> None:
         from mcap.writer import CompressionType, Writer
 
-        self.path = path
-        self.fsync = fsync
-        if os.path.isdir(path):
-            raise SessionError(f"{path} is a directory, not a session file", path=path)
-        try:
-            self._f: BinaryIO = open(path, "wb" if overwrite else "xb")
-        except FileExistsError:
-            raise SessionExistsError(f"{path} already exists (use --overwrite to replace it)", path=path) from None
-        except OSError as exc:
-            raise SessionError(f"cannot create {path}: {exc.strerror or exc}", path=path) from exc
-        self._w = Writer(self._f, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        # the mcap writer uses write, tell and flush: what SessionFile has
+        self._w = Writer(cast("BinaryIO", self._f), chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._w.start(profile="perfcap", library="perfcap")
         from capture import __version__
         m = {"format_version": FORMAT_VERSION, "perfcap_version": __version__, "host": socket.gethostname(),
@@ -345,20 +379,24 @@ class SessionWriter:
         self._add(self._events, ev.t_host_ns, json.dumps(ev.to_dict()).encode(), now_ns)
 
     def flush(self) -> None:
-        """Close the current MCAP chunk and push it to the disk (fsync if asked).
+        """Close the current MCAP chunk and push it to the disk (fsync if asked); what is on disk then
+        is complete, and a later failure cuts the file back to it.
 
         Raises:
-            SessionError: the disk write failed.
+            SessionError: the disk write failed (the file is cut back to the previous flush).
         """
         try:
             self._w.flush()
-            if self.fsync:
-                os.fsync(self._f.fileno())
+            self._sync()
         except OSError as exc:
             raise SessionError(f"writing {self.path} failed: {exc.strerror or exc}", path=self.path) from exc
 
     def close(self, summary: dict[str, Any] | None = None) -> None:
-        """Write the summary and the MCAP footer and close the file."""
+        """Write the summary and the MCAP footer and close the file.
+
+        Raises:
+            SessionError: the disk write failed (the file is cut back to the last flush, and closed).
+        """
         if self.closed:
             return
         self.closed = True
@@ -366,13 +404,23 @@ class SessionWriter:
             if summary is not None:
                 self._w.add_metadata("perfcap.summary", {"json": json.dumps(summary, sort_keys=True, default=str)})
             self._w.finish()
-            self._f.flush()
-            if self.fsync:
-                os.fsync(self._f.fileno())
+            self._sync()
         except OSError as exc:
             raise SessionError(f"closing {self.path} failed: {exc.strerror or exc}", path=self.path) from exc
         finally:
             self._f.close()
+
+    def abort(self) -> None:
+        """Stop after a failure: the file is cut back to the last flush (complete records only, no
+        footer: readers see a take cut short) and closed."""
+        if not self.closed:
+            self.closed = True
+            self._f.abort()
+
+    @property
+    def cut_back(self) -> bool:
+        """After a failure: the file holds exactly what the last flush had (False: it may hold more)."""
+        return self._f.cut_back
 
 
 # ---------------------------------------------------------------------------------------------------

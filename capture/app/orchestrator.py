@@ -111,6 +111,12 @@ class CaptureReport:
     output: str | None
     recorder_error: str | None = None
     events: list[dict[str, Any]] = field(default_factory=list)
+    #: samples per stream in the session file (None: nothing recorded)
+    saved: dict[str, int] | None = None
+    #: samples per stream that came to the recorder but are not in the file (a failed recording)
+    not_saved: dict[str, int] = field(default_factory=dict)
+    #: ``saved`` is exact (False: the file holds at least that)
+    saved_exact: bool = True
 
 
 CALIBRATION_KEY = "calibration.json"
@@ -188,6 +194,11 @@ class Capture:
         self._fsync = fsync
         self.reconnect = reconnect
         self._lock = threading.RLock()  # devices and the recorder change together (serve adds phones live)
+        #: set when the recording fails (a write error): ``run`` ends the take
+        self.recording_failed = threading.Event()
+        #: called (from the recorder's thread) with the error when a recording fails; ``perfcap serve``
+        #: stops that recording and keeps serving
+        self.on_recording_failed: Callable[[Exception], None] | None = None
         writer = None
         if output is not None:  # before any thread starts: a bad path must leave nothing running
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
@@ -212,6 +223,7 @@ class Capture:
 
     def _attach_recorder(self, writer: SessionWriter) -> SessionRecorder:
         rec = SessionRecorder(writer, max_loss_s=self._max_loss_s, clock=self.clock)
+        rec.on_failed = self._recorder_failed
         for d in self.devices:
             rec.add_device(d.name, d.kind, d.transport.url, d.device_options, d.identity, d.streams, d.descriptors())
         for proc in self.processors:
@@ -278,30 +290,47 @@ class Capture:
     def recording(self) -> bool:
         return self.recorder is not None and not self._stopped
 
-    def start_recording(self, output: str, *, overwrite: bool = False, meta: dict[str, str] | None = None) -> None:
+    def _recorder_failed(self, exc: Exception) -> None:
+        self.recording_failed.set()  # (the recorder has logged what the file keeps)
+        cb = self.on_recording_failed
+        if cb is not None:
+            cb(exc)
+
+    def start_recording(self, output: str, *, overwrite: bool = False, meta: dict[str, str] | None = None,
+                        base_dir: str | None = None) -> str:
         """Start recording a running (or not yet started) capture into a new session file; every
-        device is declared, and what the bus carries from now on is written.
+        device is declared, and what the bus carries from now on is written. Returns the file's path
+        (with ``base_dir``: the path inside it).
+
+        Args:
+            output: the session file.
+            overwrite: replace an existing perfcap session.
+            meta: extra session metadata.
+            base_dir: confine ``output`` to this directory (see ``SessionWriter``).
 
         Raises:
-            ConfigError: a recording is already running.
+            ConfigError: a recording is already running, or the path is malformed or leaves ``base_dir``.
             SessionExistsError / SessionError: the file cannot be created.
         """
         with self._lock:
             if self.recorder is not None:
                 raise ConfigError(f"already recording to {self.output}; stop that recording first")
             writer = SessionWriter(output, overwrite=overwrite, fsync=self._fsync, meta=meta,
-                                   wall_time_s=self.clock.wall_time_s())
+                                   wall_time_s=self.clock.wall_time_s(), base_dir=base_dir)
             try:
                 self._attach_recorder(writer)
             except BaseException:
                 if not writer.closed:
                     writer.close()
                 raise
-            self.output = output
+            self.output = writer.path
+            self.recording_failed.clear()
+            return writer.path
 
     def stop_recording(self) -> dict[str, Any]:
         """Finish the current recording: everything already on the bus is written, the file closed.
-        Returns ``{"output", "samples", "error"}``.
+        Returns ``{"output", "samples", "error", "not_saved"}``: ``samples`` per stream are what the
+        file holds, ``not_saved`` what came in but is not in it (a failed recording).
 
         Raises:
             ConfigError: nothing is being recorded.
@@ -313,8 +342,8 @@ class Capture:
             self.bus.unsubscribe(rec.subscription, wait=True)
             self.recorder = None
             out, self.output = self.output, None
-        return {"output": out, "samples": dict(rec.counts),
-                "error": None if rec.failed is None else str(rec.failed)}
+        return {"output": out, "samples": dict(rec.saved),
+                "error": None if rec.failed is None else str(rec.failed), "not_saved": rec.not_saved()}
 
     def subscribe(self, sub: Subscriber, policy: Overflow = Overflow.KEEP_NEWEST,
                   name: str | None = None) -> Subscription:
@@ -394,6 +423,8 @@ class Capture:
                     break
                 if not any(r.alive for r in self.readers):
                     break
+                if self.recording_failed.is_set():
+                    break  # a write failed: the take ends now, not at its duration
                 wait = 0.05 if duration_s is None else max(0.0, min(0.05, duration_s - elapsed))
                 if stop.wait(wait):
                     break
@@ -424,8 +455,9 @@ class Capture:
         subs = [s.__dict__ for s in self.bus.stats()]
         self.bus.close()
         rec_err = None
-        if self.recorder is not None and self.recorder.failed is not None:
-            rec_err = str(self.recorder.failed)
+        rec = self.recorder
+        if rec is not None and rec.failed is not None:
+            rec_err = str(rec.failed)
         self._report = CaptureReport(
             duration_s=elapsed,
             devices={d.name: d.health() for d in self.devices},
@@ -434,5 +466,8 @@ class Capture:
             output=self.output,
             recorder_error=rec_err,
             events=[e.to_dict() for e in self.stats.events if e.kind not in (EventKind.PROTOCOL_ERRORS,)],
+            saved=None if rec is None else dict(rec.saved),
+            not_saved={} if rec is None else rec.not_saved(),
+            saved_exact=True if rec is None else rec.saved_exact,
         )
         return self._report

@@ -127,11 +127,19 @@ def print_capture(report: CaptureReport, as_json: bool) -> int:
     if as_json:
         out(json.dumps({"duration_s": report.duration_s, "output": report.output, "streams": report.streams,
                         "devices": report.devices, "subscribers": report.subscribers,
-                        "recorder_error": report.recorder_error, "events": report.events}, default=str))
+                        "recorder_error": report.recorder_error, "events": report.events,
+                        "saved": report.saved, "not_saved": report.not_saved, "saved_exact": report.saved_exact},
+                       default=str))
     else:
+        rec_failed = report.recorder_error is not None and report.saved is not None
         out(f"captured {report.duration_s:.2f} s" + (f" into {report.output}" if report.output else ""))
         for name, s in report.streams.items():
-            out(f"  {name:24s} {s['samples']:8d} samples  {s['rate_hz']:8.2f} Hz  {s['drops']} lost")
+            line = f"  {name:24s} {s['samples']:8d} samples  {s['rate_hz']:8.2f} Hz  {s['drops']} lost"
+            if rec_failed and report.saved is not None:
+                kept = report.saved.get(name, 0)
+                line += (f"; {'at least ' if not report.saved_exact else ''}{kept} in the file,"
+                         f" {max(0, s['samples'] - kept)} not saved")
+            out(line)
         for name, d in report.devices.items():
             extra = []
             if d["checksum_errors"] or d["framing_errors"]:
@@ -148,6 +156,11 @@ def print_capture(report: CaptureReport, as_json: bool) -> int:
                 out(f"  subscriber {sub['name']} dropped {sub['dropped']} items")
     if report.recorder_error:
         err(f"perfcap: error: recording failed: {report.recorder_error}")
+        if report.saved is not None:
+            kept = sum(report.saved.values())
+            captured = sum(s["samples"] for s in report.streams.values())
+            err(f"perfcap: the take was stopped; {report.output} keeps {'at least ' if not report.saved_exact else ''}"
+                f"{kept} of {captured} samples (those up to its last flush); {max(0, captured - kept)} are not saved")
         return EXIT_CHECK_FAILED
     failed = [n for n, d in report.devices.items() if d["state"] == "failed"]
     if failed:

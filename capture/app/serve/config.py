@@ -40,6 +40,8 @@ class Limits:
     max_malformed: int = 20        # per connection before it is closed
     ping_s: float = 1.0
     inbox_bytes: int = 4 << 20     # per phone: received, not yet decoded (beyond: refused, closed with 4429)
+    byte_rate: float = float(1 << 20)  # bytes per second per phone (an address: max_connections_per_host x)
+    byte_burst: float = float(4 << 20)  # at least the largest message or push
     max_sockets: int = 256         # TCP connections the phone port holds, in any state
     max_sockets_per_host: int = 16
     max_handshakes: int = 64       # connections in their TLS + HTTP handshake, in total
@@ -61,7 +63,8 @@ class ServeConfig:
     control_host: str = setting("127.0.0.1", "control API address (default loopback only)")
     control_port: int = setting(8780, "control API port (-1: none)", min=-1, max=65535)
     state_dir: str = setting("", "where the token and certificate are kept (default $XDG_DATA_HOME/perfcap/serve)")
-    sessions_dir: str = setting(".", "where POST /api/record/start puts sessions without a path")
+    sessions_dir: str = setting("", "the only directory POST /api/record/start writes sessions in (default"
+                                " $XDG_DATA_HOME/perfcap/sessions)")
     mdns: bool = setting(True, "advertise the service and browse for SensorServer phones with mDNS",
                          flag_help="do not advertise or browse with mDNS")
     mdns_interfaces: str = setting("all", "interfaces mDNS uses: all, or comma-separated interface addresses")
@@ -80,7 +83,10 @@ class ServeConfig:
     max_phones: int = setting(32, "phone devices the service may create (default 32)", min=1, max=10_000)
     max_message_kb: int = setting(64, "largest message accepted (KiB)", min=1, max=1 << 20)
     max_push_mb: int = setting(4, "largest Sensor Logger push accepted (MiB)", min=1, max=1024)
-    max_rate: float = setting(200.0, "messages per second per client", min=0.1, max=1e6)
+    max_rate: float = setting(200.0, "messages per second per phone (an address: max_connections_per_host times"
+                              " that)", min=0.1, max=1e6)
+    max_rate_kb: int = setting(1024, "KiB per second per phone (an address: max_connections_per_host times that)",
+                               min=1, max=1 << 30)
     max_connections_per_host: int = setting(4, "paired phone connections one address may hold open", min=1,
                                             max=10_000)
     max_inbox_mb: int = setting(4, "what one phone may have waiting to be decoded (MiB); beyond it its messages"
@@ -124,6 +130,9 @@ class ServeConfig:
         return Limits(max_message_bytes=self.max_message_kb * 1024, max_push_bytes=self.max_push_mb << 20,
                       rate_hz=self.max_rate, burst=max(self.max_rate * 2, 1.0), max_connections=self.max_phones * 2,
                       max_connections_per_host=self.max_connections_per_host, inbox_bytes=self.max_inbox_mb << 20,
+                      byte_rate=float(self.max_rate_kb << 10),
+                      byte_burst=float(max(2 * (self.max_rate_kb << 10), self.max_push_mb << 20,
+                                           self.max_message_kb << 10)),
                       max_sockets=self.max_sockets, max_sockets_per_host=self.max_sockets_per_host,
                       max_handshakes=self.max_handshakes, handshake_timeout_s=self.handshake_timeout_s,
                       idle_timeout_s=self.idle_timeout_s, phone_timeout_s=self.phone_timeout_s)

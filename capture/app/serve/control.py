@@ -5,7 +5,8 @@
 * ``GET /api/health``: status, uptime, recording, counts of phones and refused input, mDNS state.
 * ``GET /api/devices``: per device: state, rate, drops, clock offset and drift, last seen, peer.
 * ``POST /api/record/start`` (JSON body optional: ``{"path": "take1.mcap", "overwrite": false}``) and
-  ``POST /api/record/stop``.
+  ``POST /api/record/stop``. The path is a name inside the sessions directory, never reached through a
+  link (``Service.start_recording``): a bad one is a 400, an existing file a 409, each with its reason.
 * ``POST /api/token/rotate``: a new pairing token (returned once); the old one stops working and
   phones that used it are disconnected.
 * ``POST /api/sensorserver`` ``{"host": "192.168.1.40", "port": 8080, "types": "accelerometer,gyroscope"}``:

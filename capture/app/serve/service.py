@@ -33,7 +33,7 @@ from capture.app.serve.gateway import CLOSE_TOKEN, Gateway
 from capture.app.serve.security import AllowList, TokenStore
 from capture.app.serve.tls import Certificate, ensure_certificate
 from capture.clock import MONOTONIC, Clock
-from capture.errors import CaptureError, ConfigError
+from capture.errors import CaptureError, ConfigError, SessionExistsError
 from devices import DeviceSpec, ReconnectPolicy
 from devices.transports.network import Inbox, NetTransport, drop_hub, hub
 
@@ -281,6 +281,10 @@ class Service:
         self._t0 = 0
         self.stopped = False
         self.report: Any = None
+        #: how the last recording ended (``Capture.stop_recording``'s answer), for the API and status
+        self.last_recording: dict[str, Any] | None = None
+        self._record_lock = threading.Lock()
+        self.capture.on_recording_failed = self._recording_failed
 
     def _check_phone_options(self, opts: Mapping[str, Mapping[str, Any]]) -> None:
         """Build each enabled token-less protocol's device once, so a bad map or sensor list is an
@@ -299,32 +303,93 @@ class Service:
                 raise ConfigError(f"{proto}: {exc}") from None
 
     # -- control ---------------------------------------------------------------------------------
+    def sessions_dir(self) -> str:
+        """Where sessions given without a path (or with a relative one) go: ``sessions_dir``, else
+        ``$XDG_DATA_HOME/perfcap/sessions`` (created, private to the user, on first use)."""
+        if self.config.sessions_dir:
+            return os.path.realpath(self.config.sessions_dir)
+        d = default_state_dir().parent / "sessions"
+        try:
+            d.mkdir(mode=0o700, parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"cannot create the sessions directory {d}: {exc.strerror or exc}") from None
+        return os.path.realpath(d)
+
     def start_recording(self, path: str | None = None, overwrite: bool = False, *, anywhere: bool = False) -> str:
-        """Start recording to ``path`` (default: a new file in ``sessions_dir``). Relative paths are
-        under ``sessions_dir``; unless ``anywhere`` (the operator's own command line), a path that
-        leaves ``sessions_dir`` is refused, since every paired phone holds the token.
+        """Start recording to ``path`` (default: a new ``perfcap-<time>.mcap`` in the sessions
+        directory) and return the file's path. Unless ``anywhere`` (the operator's own command line),
+        ``path`` is a name inside the sessions directory (relative, or absolute inside it), since every
+        paired phone holds the token: it is opened without following links on the way, ``..`` and
+        hidden names are refused, it ends in ``.mcap``, and ``overwrite`` replaces only a perfcap
+        session (see ``capture.session_file``).
 
         Raises:
-            ConfigError: already recording, or the path leaves ``sessions_dir``.
-            SessionExistsError / SessionError: the file cannot be created.
+            ConfigError: already recording, or the path is malformed or leaves the sessions directory.
+            SessionExistsError: the file exists (and ``overwrite`` is false, or it is no perfcap session).
+            SessionError: the file cannot be created.
         """
-        base = os.path.realpath(self.config.sessions_dir)
-        if path is None:
+        meta = {"command": "perfcap serve"}
+        if anywhere and path is not None:
+            out = self.capture.start_recording(path, overwrite=overwrite, meta=meta)
+        elif path is None:
+            base = self.sessions_dir()
             stamp = int(MONOTONIC.wall_time_s())
-            path = os.path.join(base, f"perfcap-{stamp}.mcap")
-        elif not anywhere:
-            full = os.path.realpath(os.path.join(base, path))
-            if os.path.commonpath([full, base]) != base:
-                raise ConfigError(f"{path!r} is outside the sessions directory {base}; give a name inside it")
-            path = full
-        self.capture.start_recording(path, overwrite=overwrite, meta={"command": "perfcap serve"})
-        log.warning("recording to %s", path)
-        return path
+            for i in range(1, 100):  # two takes in one second: -2, -3, ...
+                name = f"perfcap-{stamp}.mcap" if i == 1 else f"perfcap-{stamp}-{i}.mcap"
+                try:
+                    out = self.capture.start_recording(name, meta=meta, base_dir=base)
+                    break
+                except SessionExistsError:
+                    continue
+            else:
+                raise SessionExistsError(f"perfcap-{stamp}-*.mcap: 99 sessions already exist in {base}", path=base)
+        else:
+            out = self.capture.start_recording(path, overwrite=overwrite, meta=meta, base_dir=self.sessions_dir())
+        log.warning("recording to %s", out)
+        return out
 
     def stop_recording(self) -> dict[str, Any]:
-        res = self.capture.stop_recording()
-        log.warning("recording %s closed", res["output"])
+        """Finish the recording; returns ``Capture.stop_recording``'s answer.
+
+        Raises:
+            ConfigError: nothing is being recorded (the message says how the last recording ended).
+        """
+        with self._record_lock:
+            try:
+                res = self.capture.stop_recording()
+            except ConfigError:
+                last = self.last_recording
+                if last is not None and last.get("error"):
+                    raise ConfigError(f"not recording: the last recording, {last['output']}, failed and was"
+                                      f" stopped: {last['error']}") from None
+                raise
+            self.last_recording = res
+        if res["error"]:
+            log.error("recording %s closed after a failure: %s", res["output"], res["error"])
+        else:
+            log.warning("recording %s closed", res["output"])
         return res
+
+    def _recording_failed(self, exc: Exception) -> None:
+        """The recorder's write failed (called from its thread): stop that recording from another
+        thread (the recorder's own cannot wait for itself), say so, and keep serving."""
+        rec = self.capture.recorder
+
+        def stop_it() -> None:
+            with self._record_lock:
+                if self.capture.recorder is not rec or rec is None:
+                    return  # stopped meanwhile
+                try:
+                    res = self.capture.stop_recording()
+                except ConfigError:
+                    return
+                self.last_recording = res
+            kept, lost = sum(res["samples"].values()), sum(res["not_saved"].values())
+            log.error("recording %s failed (%s) and was stopped: the file keeps %d samples, %d came in after its"
+                      " last flush and are not saved; still serving (POST /api/record/start starts another)",
+                      res["output"], res["error"], kept, lost)
+
+        threading.Thread(target=stop_it, name="perfcap-serve-record-failed", daemon=True).start()
 
     async def rotate_token(self) -> str:
         tok = self.tokens.rotate()
@@ -362,10 +427,18 @@ class Service:
             })
         return out
 
+    def _last_recording_info(self) -> dict[str, Any] | None:
+        last = self.last_recording
+        if last is None:
+            return None
+        return {"output": last["output"], "error": last["error"], "saved": sum(last["samples"].values()),
+                "not_saved": sum(last["not_saved"].values())}
+
     def health(self) -> dict[str, Any]:
         return {"status": "ok" if not self.stopped else "stopping", "version": __version__,
                 "uptime_s": round((self.clock.now_ns() - self._t0) / 1e9, 3) if self._t0 else 0.0,
                 "recording": self.capture.output if self.capture.recorder is not None else None,
+                "last_recording": self._last_recording_info(),
                 "devices": len(self.capture.devices),
                 "phones_connected": sum(1 for b in self.phones.hub.inboxes().values() if b.connected),
                 "messages": self.gateway.stats.messages, "rejected": self.gateway.rejected.as_dict(),
