@@ -105,7 +105,7 @@ def role_service(cfg: dict[str, Any]) -> None:
                     "stats_events": len(svc.capture.stats.events), "rss_mb": proc_rss_mb(os.getpid())})
     before = {"health": svc.health()}
     rep = st.stop()
-    boxes = {k: {"received": b.received, "dropped": b.dropped, "connects": b.connects}
+    boxes = {k: {"received": b.received, "dropped": b.dropped, "connects": b.connects, "dropped_bytes": b.dropped_bytes}
              for k, b in svc.phones.hub.inboxes().items()}
     arrays: dict[str, np.ndarray] = {}
     for name, r in rows.items():

@@ -105,12 +105,23 @@ class Gateway:
         self.rates = RateBook(lim.rate_hz, lim.burst)
         k = lim.max_connections_per_host
         self.host_rates = RateBook(lim.rate_hz * k, lim.burst * k)
+        burst = max(lim.byte_burst, lim.max_message_bytes, lim.max_push_bytes)  # any one message fits
+        self.byte_rates = RateBook(lim.byte_rate, burst)
+        self.host_byte_rates = RateBook(lim.byte_rate * k, burst * k)
         self.gate: ConnectionGate | None = None
         self._tcp_open: dict[str, int] = {}
 
-    def _allow(self, key: str, host: str, t: int) -> bool:
-        """One message from phone ``key`` at address ``host``: within both their rates?"""
-        return self.rates.allow(key, t) and self.host_rates.allow(host, t)
+    def _allow(self, key: str, host: str, t: int, nbytes: int = 0) -> bool:
+        """One message of ``nbytes`` from phone ``key`` at address ``host``: within their message and byte
+        rates? (A refused message costs nothing.)"""
+        if not (self.rates.allow(key, t) and self.host_rates.allow(host, t)):
+            return False
+        if nbytes:
+            if not self.byte_rates.allow(key, t, nbytes):
+                return False
+            if not self.host_byte_rates.allow(host, t, nbytes):
+                return False
+        return True
 
     def _over_budget(self, inbox: Inbox, host: str, what: str) -> None:
         self.rejected.count("inbox byte budget exceeded", host,
@@ -283,7 +294,7 @@ class Gateway:
                 break
             t = clock.now_ns()
             if msg.type is WSMsgType.TEXT:
-                if not allow(key, host, t):
+                if not allow(key, host, t, len(msg.data)):
                     self.rejected.count("message rate exceeded", host)
                     await ws.close(code=CLOSE_RATE, message=b"message rate exceeded")
                     break
@@ -351,7 +362,9 @@ class Gateway:
             self.rejected.count("malformed message", host, "sensorlogger body without deviceId")
             return web.json_response({"error": "expected Sensor Logger JSON with deviceId"}, status=400)
         rid = re.sub(r"[^A-Za-z0-9._\-]", "-", did)[:64]
-        if not self.rates.allow(f"sensorlogger/{rid}", t):
+        key = f"sensorlogger/{rid}"
+        if not (self.rates.allow(key, t) and self.byte_rates.allow(key, t, len(body))
+                and self.host_byte_rates.allow(host, t, len(body))):
             self.rejected.count("message rate exceeded", host, "sensorlogger")
             return web.json_response({"error": "too many requests"}, status=429)
         admitted = self.registry.admit("sensorlogger", rid, host, {"deviceId": did, "peer": host})
@@ -413,7 +426,9 @@ class Gateway:
                 if not data:
                     break
                 t = self.clock.now_ns()
-                if not (self.rates.allow(key, t, 0.25) and self.host_rates.allow(host, t, 0.25)):
+                n = len(data)
+                if not (self.rates.allow(key, t, 0.25) and self.host_rates.allow(host, t, 0.25)
+                        and self.byte_rates.allow(key, t, n) and self.host_byte_rates.allow(host, t, n)):
                     self.rejected.count("message rate exceeded", host, protocol)
                     break
                 if not inbox.put(Chunk(data, t, Direction.RX)):
@@ -483,7 +498,7 @@ class _DatagramIngest(asyncio.DatagramProtocol):
         if len(data) > gw.limits.max_message_bytes:
             gw.rejected.count("message too large", host, self.protocol)
             return
-        if not gw._allow(f"{self.protocol}/{host}", host, t):
+        if not gw._allow(f"{self.protocol}/{host}", host, t, len(data)):
             gw.rejected.count("message rate exceeded", host, self.protocol)
             return
         if not inbox.connected:
