@@ -11,6 +11,7 @@ everything goes through ``Device.process_chunk``, the path a ``DeviceReader`` po
 chunks go through a real ``DeviceReader`` onto a ``SampleBus``. What is checked:
 
 * no exception leaves the device (an *escape*), and the reader ends FINISHED, never FAILED;
+* no sample with an infinite value is delivered;
 * every mutated message is accounted for: it gave samples or moved a counter in ``health()``
   (an error, a skipped line, a lost message, a decoded frame...), or left bytes buffered on a
   stream transport; one that did none of these is *silent*;
@@ -295,6 +296,9 @@ class Kind:
     renumber: Callable[[bytes, int], bytes] | None = None
     #: a HID kind: the device opened on its simulator (handshake done)
     hid_url: str | None = None
+    #: samples of the valid messages a bad one may cost (a report without a checksum whose timer
+    #: is damaged makes the next report's samples look repeated: counted, not silent)
+    lost_per_input: int = 0
 
     def make(self) -> Device:
         """A fresh device ready for ``process_chunk``."""
@@ -416,7 +420,7 @@ def _witmotion_kind() -> Kind:
                 binary_mutator(_wit_sum), stream=True)
 
 
-def _hid_kind(name: str, codec: str, url: str, limit: int = 400) -> Kind:
+def _hid_kind(name: str, codec: str, url: str, limit: int = 400, lost_per_input: int = 0) -> Kind:
     """A HID kind from a simulated (``simhid://``) or recorded device: its RX reports, after the
     handshake, are the valid messages."""
     dev = open_device(url)
@@ -432,7 +436,8 @@ def _hid_kind(name: str, codec: str, url: str, limit: int = 400) -> Kind:
         pass
     finally:
         dev.close()
-    return Kind(name, codec, None, reports, binary_mutator(None, start=1), period_ns=4_000_000, hid_url=url)
+    return Kind(name, codec, None, reports, binary_mutator(None, start=1), period_ns=4_000_000, hid_url=url,
+                lost_per_input=lost_per_input)
 
 
 def _kinds() -> dict[str, Callable[[], Kind]]:
@@ -444,8 +449,10 @@ def _kinds() -> dict[str, Callable[[], Kind]]:
         "sony": lambda: _hid_kind("Sony DualShock 4 (USB)", "sony", "pad=simhid://ds4?realtime=false&bus=usb&seed=3"),
         "dualsense": lambda: _hid_kind("Sony DualSense (USB)", "sony",
                                        "pad=simhid://dualsense?realtime=false&bus=usb&seed=3"),
+        # its timer byte says which of a report's three IMU samples are new (overlapping_samples)
         "nintendo": lambda: _hid_kind("Nintendo Switch Pro (Bluetooth)", "nintendo",
-                                      "pad=switchpro@simhid://switchpro?realtime=false&bus=bluetooth&seed=3"),
+                                      "pad=switchpro@simhid://switchpro?realtime=false&bus=bluetooth&seed=3",
+                                      lost_per_input=2),
         "hid_generic": lambda: _hid_kind("generic HID mouse", "hid", "m=hid@simhid://mouse?realtime=false&seed=3"),
         "hid_recorded": lambda: _hid_kind("generic HID (real hid-recorder capture)", "hid",
                                           f"m=hid@simhid://{roller}?realtime=false"),
@@ -477,6 +484,7 @@ def _n_samples(items: list[Any]) -> int:
 class FuzzResult:
     kind: str
     codec: str
+    lost_per_input: int = 0
     inputs: int = 0
     escapes: int = 0
     silent: int = 0
@@ -484,6 +492,11 @@ class FuzzResult:
     #: them the fuzzed device did not give
     good_samples: int = 0
     good_lost: int = 0
+    #: samples delivered with an infinite value (no sensor reads one)
+    inf_delivered: int = 0
+    #: chunks whose decode raised, caught by the device layer's net (``stats.decode_errors``) rather
+    #: than refused by the codec with its reason
+    net_caught: int = 0
     reader_state: str = ""
     samples: int = 0
     bus_samples: int = 0
@@ -495,7 +508,9 @@ class FuzzResult:
             out.append(f"{self.escapes} escape(s)")
         if self.silent:
             out.append(f"{self.silent} silent drop(s)")
-        if self.good_lost:
+        if self.inf_delivered:
+            out.append(f"{self.inf_delivered} sample(s) with an infinite value delivered")
+        if self.good_lost > self.lost_per_input * self.inputs:
             out.append(f"{self.good_lost} of {self.good_samples} samples of valid messages not delivered")
         if self.reader_state and self.reader_state != DeviceState.FINISHED.value:
             out.append(f"reader ended {self.reader_state}")
@@ -535,7 +550,7 @@ def _keys(items: list[Any]) -> list[tuple[str, tuple[Any, ...]]]:
 def fuzz_kind(key: str, n: int, seed: int = 1, reader: bool = True, kind: Kind | None = None) -> FuzzResult:
     """Fuzz one device kind with ``n`` mutated messages (see the module docstring)."""
     kind = kind or KINDS[key]()
-    res = FuzzResult(kind.name, kind.codec)
+    res = FuzzResult(kind.name, kind.codec, kind.lost_per_input)
     chunks = script(kind, n, seed)
     timed = [Chunk(data, 10**12 + i * kind.period_ns, Direction.RX) for i, (data, _, _) in enumerate(chunks)]
     # the samples of the valid messages given to a device that sees nothing else
@@ -558,6 +573,11 @@ def fuzz_kind(key: str, n: int, seed: int = 1, reader: bool = True, kind: Kind |
             continue
         res.samples += _n_samples(items)
         got.update(_keys(items))
+        inf = [x for x in items if isinstance(x, Sample) and any(math.isinf(v) for v in x.values)]
+        if inf:
+            res.inf_delivered += len(inf)
+            if len(res.examples) < 5:
+                res.examples.append(f"infinite value delivered: {inf[0]} from {data[:160]!r}")
         if bad:
             res.inputs += 1
             if not _n_samples(items) and _counters(dev) == before and not (kind.stream and dev.codec.buffered):
@@ -573,6 +593,7 @@ def fuzz_kind(key: str, n: int, seed: int = 1, reader: bool = True, kind: Kind |
     res.samples += _n_samples(tail)
     got.update(_keys(tail))
     missing = want - got
+    res.net_caught = int(dev.health().get("decode_errors", 0))
     res.good_lost = sum(missing.values())
     res.good_samples = sum(want.values())
     if missing and len(res.examples) < 5:
@@ -582,7 +603,7 @@ def fuzz_kind(key: str, n: int, seed: int = 1, reader: bool = True, kind: Kind |
     return res
 
 
-class _ScriptTransport(Transport):
+class ScriptTransport(Transport):
     """Hands out a list of chunks, then ends (``EndOfStream``): a finite source for a reader."""
 
     scheme = "fuzzscript"
@@ -628,7 +649,7 @@ def run_reader(kind: Kind, chunks: list[Chunk]) -> tuple[str, int]:
     that hands them out, then ends); returns the state the device ends in (``finished``) and the
     samples a subscriber received."""
     assert kind.build is not None
-    dev = kind.build(_ScriptTransport(chunks))
+    dev = kind.build(ScriptTransport(chunks))
     bus = SampleBus()
     count = _Count()
     bus.subscribe(count, policy=Overflow.NEVER_DROP)

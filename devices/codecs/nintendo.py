@@ -363,7 +363,8 @@ class SwitchCodec(Codec):
     def feed(self, data: bytes) -> list[Frame]:
         data = bytes(data)
         self.stats.bytes_in += len(data)
-        if not data:
+        if not data:  # no report id: nothing a controller sends
+            self._bad("framing", "an empty report", 0, data)
             return []
         rid = data[0]
         try:

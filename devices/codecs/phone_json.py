@@ -188,8 +188,10 @@ def _is_num(v: Any) -> bool:
 
 
 def _num(v: Any, what: str) -> float:
-    """A finite JSON number (bools are not numbers)."""
+    """A finite JSON number (bools are not numbers; an integer beyond float64's range is refused)."""
     if type(v) is int:
+        if v.bit_length() > 1023:
+            raise _Invalid(f"{what} is an integer of {v.bit_length()} bits, beyond a float's range")
         return float(v)
     if type(v) is float and math.isfinite(v):
         return v

@@ -60,6 +60,8 @@ def _reject_constant(name: str) -> float:
 
 def _ss_num(v: Any, what: str) -> float:
     if type(v) is int:
+        if v.bit_length() > 1023:
+            raise _Reject(f"{what} is an integer of {v.bit_length()} bits, beyond a float's range")
         return float(v)
     if type(v) is float and math.isfinite(v):
         return v
