@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import os
 import stat
 from dataclasses import dataclass, replace
@@ -22,13 +23,15 @@ from capture.errors import ConfigError
 from capture.session import MCAP_MAGIC
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     from capture.sample import SampleBatch
     from capture.session import SessionReader
     from cycles import Cycle
 
-#: the CSV files read (a 200 Hz IMU export of 20 minutes is about 20 MB; reading one costs about
-#: 10 times its size in memory), their longest line and their widest row
-MAX_CSV_BYTES = 32 << 20
+#: the CSV files read (a 200 Hz IMU export of 20 minutes is about 12 MB; reading one costs about
+#: 6 times its size in memory and 0.5 s per MB), their longest line and their widest row
+MAX_CSV_BYTES = 16 << 20
 MAX_CSV_LINE = 64 << 10
 MAX_CSV_COLUMNS = 1024
 
@@ -133,19 +136,104 @@ def _session_stream_input(reader: SessionReader, stream: str, b: SampleBatch, co
                        angle_unit=unit, origin_ns=origin, dropped=int((~keep).sum()))
 
 
+def _csv_rows(text: str, dialect: Any, path: str) -> Iterator[list[str]]:
+    """The non-blank rows of a CSV text, each at most ``MAX_CSV_COLUMNS`` fields."""
+    for fields in csv.reader(io.StringIO(text, newline=""), dialect):
+        if len(fields) > MAX_CSV_COLUMNS:
+            raise InputLimitError(f"{path} has a row of {len(fields)} fields; at most {MAX_CSV_COLUMNS} are read")
+        if fields and any(c.strip() for c in fields):
+            yield fields
+
+
+def _number(x: str) -> float | None:
+    try:
+        return float(x)
+    except ValueError:
+        return None
+
+
+def _trailing_blanks(row: list[str], at_most: int) -> int:
+    n = 0
+    for c in reversed(row):
+        if n >= at_most or c.strip():
+            break
+        n += 1
+    return n
+
+
 def csv_cycle_input(path: str, columns: list[str] | None) -> CycleInput:
+    """Times and values from a CSV file, in two passes over its rows (the first finds the header, the
+    row count and the trailing empty columns, the second converts the cells used), so memory is the
+    text and one array, not a list of every cell.
+
+    Raises:
+        ConfigError: unreadable, beyond the module's bounds, or not such a CSV (the line named).
+    """
     try:   # (utf-8-sig: a BOM is not part of the first name)
         text = read_text_bounded(path, MAX_CSV_BYTES, MAX_CSV_LINE, encoding="utf-8-sig")
         try:
             dialect: Any = csv.Sniffer().sniff(text[:8192], delimiters=",;\t")
         except csv.Error:
             dialect = csv.excel
-        rows: list[list[str]] = []
-        for fields in csv.reader(io.StringIO(text, newline=""), dialect):
-            if len(fields) > MAX_CSV_COLUMNS:
-                raise InputLimitError(f"{path} has a row of {len(fields)} fields; at most {MAX_CSV_COLUMNS} are read")
-            if fields and any(c.strip() for c in fields):
-                rows.append(fields)
+        rows = _csv_rows(text, dialect, path)
+        first = next(rows, None)
+        if first is None:
+            raise ConfigError(f"{path} is empty: expected a CSV with a time column (s) and channel columns")
+        header = any(_number(c) is None for c in first if c.strip())
+        names = [c.strip() for c in first] if header else [f"c{i}" for i in range(len(first))]
+        # a trailing delimiter on every line makes an empty, unnamed column: dropped (as many as every
+        # row of the header's length leaves empty)
+        n_body, same_length, blanks = 0, True, len(names)
+        for row in rows if header else itertools.chain([first], rows):
+            n_body += 1
+            if len(row) != len(names):
+                same_length = False
+            elif same_length:
+                blanks = min(blanks, _trailing_blanks(row, blanks))
+        while same_length and blanks and len(names) > 1 and not names[-1]:
+            names.pop()
+            blanks -= 1
+        width = len(names)
+        body = _csv_rows(text, dialect, path)
+        if header:
+            next(body)
+        if len(names) < 2:
+            raise ConfigError(f"{path}: expected a time column and at least one channel column, found one column")
+        lower = [n.lower() for n in names]
+        t_col, t_scale = 0, 1.0
+        for cand in CSV_TIME_COLUMNS:
+            if cand in lower:
+                t_col = lower.index(cand)
+                break
+        else:
+            if "t_bus_ns" in lower:  # a perfcap export
+                t_col, t_scale = lower.index("t_bus_ns"), 1e-9
+        if columns is not None:
+            idx = _pick(names, columns, path)
+            if t_col in idx:
+                raise ConfigError(f"--columns: {names[t_col]!r} is the time column")
+        else:
+            # (a perfcap export's timing columns, other clocks (Sensor Logger's epoch ns 'time' beside its
+            # 'seconds_elapsed') and an IMU's temperature are no part of the motion)
+            idx = [i for i, n in enumerate(lower) if i != t_col and n not in EXPORT_TIMING_COLUMNS
+                   and n not in CSV_TIME_COLUMNS and not n.endswith("[degc]")]
+            if not idx:
+                raise ConfigError(f"{path}: no channel columns besides the time column {names[t_col]!r}")
+        data = np.full((n_body, len(idx) + 1), np.nan)
+        cols = [t_col, *idx]
+        for r, row in enumerate(body):
+            if same_length:
+                row = row[:width]  # noqa: PLW2901 - the dropped trailing columns
+            if len(row) != width:
+                raise ConfigError(f"{path} line {r + 1 + header}: {len(row)} fields where the header has {width}")
+            for j, col in enumerate(cols):
+                cell = row[col].strip()
+                if cell:
+                    v = _number(cell)
+                    if v is None:
+                        raise ConfigError(f"{path} line {r + 1 + header}, column {names[col]!r}: {cell!r}"
+                                          " is not a number")
+                    data[r, j] = v
         del text
     except UnicodeDecodeError:
         raise ConfigError(f"{path} is neither a perfcap session nor a text CSV file") from None
@@ -153,55 +241,6 @@ def csv_cycle_input(path: str, columns: list[str] | None) -> CycleInput:
         raise ConfigError(f"{exc} (for a longer take, extract from its perfcap session)") from None
     except (OSError, csv.Error) as exc:
         raise ConfigError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
-    if not rows:
-        raise ConfigError(f"{path} is empty: expected a CSV with a time column (s) and channel columns")
-
-    def number(x: str) -> float | None:
-        try:
-            return float(x)
-        except ValueError:
-            return None
-
-    header = any(number(c) is None for c in rows[0] if c.strip())
-    names = [c.strip() for c in rows[0]] if header else [f"c{i}" for i in range(len(rows[0]))]
-    body = rows[1:] if header else rows
-    # a trailing delimiter on every line makes an empty, unnamed column: drop it
-    while len(names) > 1 and not names[-1] and all(len(r) == len(names) and not r[-1].strip() for r in body):
-        names.pop()
-        body = [r[:-1] for r in body]
-    if len(names) < 2:
-        raise ConfigError(f"{path}: expected a time column and at least one channel column, found one column")
-    lower = [n.lower() for n in names]
-    t_col, t_scale = 0, 1.0
-    for cand in CSV_TIME_COLUMNS:
-        if cand in lower:
-            t_col = lower.index(cand)
-            break
-    else:
-        if "t_bus_ns" in lower:  # a perfcap export
-            t_col, t_scale = lower.index("t_bus_ns"), 1e-9
-    if columns is not None:
-        idx = _pick(names, columns, path)
-        if t_col in idx:
-            raise ConfigError(f"--columns: {names[t_col]!r} is the time column")
-    else:
-        # (a perfcap export's timing columns, other clocks (Sensor Logger's epoch ns 'time' beside its
-        # 'seconds_elapsed') and an IMU's temperature are no part of the motion)
-        idx = [i for i, n in enumerate(lower) if i != t_col and n not in EXPORT_TIMING_COLUMNS
-               and n not in CSV_TIME_COLUMNS and not n.endswith("[degc]")]
-        if not idx:
-            raise ConfigError(f"{path}: no channel columns besides the time column {names[t_col]!r}")
-    data = np.full((len(body), len(idx) + 1), np.nan)
-    for r, row in enumerate(body):
-        if len(row) != len(names):
-            raise ConfigError(f"{path} line {r + 1 + header}: {len(row)} fields where the header has {len(names)}")
-        for j, col in enumerate([t_col, *idx]):
-            cell = row[col].strip()
-            if cell:
-                v = number(cell)
-                if v is None:
-                    raise ConfigError(f"{path} line {r + 1 + header}, column {names[col]!r}: {cell!r} is not a number")
-                data[r, j] = v
     keep = np.all(np.isfinite(data), axis=1)
     data = data[keep]
     if not len(data):

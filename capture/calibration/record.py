@@ -120,10 +120,10 @@ class ImuCalibration:
         set_(self, "mag_soft_iron", _mat("mag_soft_iron", self.mag_soft_iron, src))
         try:
             m = np.asarray(self.mounting, np.float64)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise ConfigError(f"calibration field 'mounting' must be 4 numbers, got {self.mounting!r}",
                               source=src) from exc
-        if m.shape != (4,) or not np.all(np.isfinite(m)):
+        if m.shape != (4,) or not np.all(np.isfinite(m)) or np.abs(m).max() > MAX_ABS_VALUE:
             raise ConfigError(f"calibration field 'mounting' must be 4 finite numbers (w, x, y, z), "
                               f"got {self.mounting!r}", source=src)
         nm = float(np.linalg.norm(m))

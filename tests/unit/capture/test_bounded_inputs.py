@@ -163,7 +163,7 @@ def test_csv_inputs_beyond_the_bounds_are_config_errors(tmp_path):
     with pytest.raises(ConfigError, match="not a regular file"):
         read_cycle_input(str(tmp_path / "fifo.csv"), None, None)   # stat, not open: a FIFO blocks
     big = sparse(tmp_path / "big.csv", cycle_input.MAX_CSV_BYTES + 1)
-    with pytest.raises(ConfigError, match=r"at most 32\.0 MiB is read \(for a longer take, extract from"):
+    with pytest.raises(ConfigError, match=r"at most 16\.0 MiB is read \(for a longer take, extract from"):
         read_cycle_input(big, None, None)
     (tmp_path / "long.csv").write_text("t,x\n" + "1" * (cycle_input.MAX_CSV_LINE + 1) + "\n")
     with pytest.raises(ConfigError, match=r"has a line of 65537 bytes"):
