@@ -23,7 +23,7 @@ def test_real_controller_imu_at_its_native_rate_with_device_time(hil_controller,
     imu = SessionReader(session_path).samples("pad/imu")
     assert len(imu) > 100
     assert imu.t_device_ns is not None  # the controller's own clock drives the timestamps
-    assert np.all(np.diff(imu.t_bus_ns) > 0)
+    assert np.all(np.diff(imu.t_bus_ns) >= 0)  # never back (capture/clocksync.py); reports may share an arrival
     acc = imu.values[:, 0:3]
     assert 5.0 < float(np.median(np.linalg.norm(acc, axis=1))) < 15.0  # gravity in m/s^2: calibration applied
     assert replay_session(session_path, speed=0).verification["equal"]

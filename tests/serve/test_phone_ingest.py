@@ -87,7 +87,9 @@ def test_page_phone_motion_arrives_complete_exact_and_on_time(served, tmp_path):
     ticks_ns = np.round(motion[:, 0] * 1000.0).astype(np.int64) * 1000
     np.testing.assert_array_equal(imu.t_device_ns, ticks_ns)
     np.testing.assert_array_equal(user.t_bus_ns, imu.t_bus_ns)
-    assert np.all(np.diff(imu.seq) == 1) and np.all(np.diff(imu.t_bus_ns) > 0)
+    # capture/clocksync.py: bus times never pass their arrival and never go back; on a busy machine several
+    # events can arrive at once before the fit settles, and then share the arrival time
+    assert np.all(np.diff(imu.seq) == 1) and np.all(np.diff(imu.t_bus_ns) >= 0)
     # bus time vs the moment the event happened on the phone, once the clock fit has a second of data
     err = _bus_error_ms(ph, imu, motion[:, 0])
     settled = motion[:, 0] >= motion[0, 0] + 1000.0
