@@ -18,12 +18,14 @@ import time
 from typing import Any
 
 import aiohttp
+import pytest
 from serve_helpers import DEADLINE_S
 
-from capture.app.serve.config import Limits
+from capture.app.serve.config import Limits, ServeConfig
 from capture.app.serve.gateway import CLOSE_RATE, CLOSE_TOO_MANY
 from capture.app.serve.security import RateBook
 from capture.clock import ManualClock
+from capture.errors import ConfigError
 from capture.sample import Chunk, Direction
 from devices.transports.network import CHUNK_OVERHEAD, Inbox
 from sim_devices.phone_sim import page_hello
@@ -161,6 +163,27 @@ def test_the_rate_survives_reconnects_per_phone_and_per_address(serve):
     assert out["other address"] == 10               # another address is not held back by the flood
     assert out["a second later"] == 5
     assert set(rejected) == {CLOSE_RATE}
+
+
+def test_the_byte_rate_bounds_what_a_phone_sends_in_bytes(serve):
+    clock = ManualClock()
+    served = serve(limits=Limits(byte_rate=10_000.0, byte_burst=100_000.0, max_push_bytes=65536), clock=clock)
+    msg = _data(20_000)
+
+    async def go() -> int | None:
+        async with _client() as s:
+            ws, _ = await _page(served, s, "bytes-phone")
+            return await _send_until_closed(ws, 10, msg)
+
+    assert asyncio.run(go()) == CLOSE_RATE
+    box = served.service.phones.hub.get("page/bytes-phone")
+    assert box.received - 1 == 100_000 // len(msg) == 4  # the byte burst, in messages of this size
+    assert served.rejected() == {"message rate exceeded": 1}
+
+
+def test_sockets_per_address_must_leave_room_for_the_page():
+    with pytest.raises(ConfigError, match="max-sockets-per-host"):
+        ServeConfig(max_sockets_per_host=4, max_connections_per_host=4).check()
 
 
 # -- phone slots -----------------------------------------------------------------------------------------------
