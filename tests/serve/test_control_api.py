@@ -173,6 +173,50 @@ def test_control_api_checks_its_arguments(served, tmp_path):
     assert served.api("POST", "/record/stop")[0] == 200
 
 
+@pytest.mark.parametrize("path, says", [
+    ("", "empty"), ("..", "'..'"), ("../x.mcap", "'..'"), ("/etc/x.mcap", "outside"), ("a\u0000b.mcap", "NUL"),
+    (".x.mcap", "'.'"), ("x.txt", ".mcap"), ("sub/", "directory"), ("link/x.mcap", "symbolic link"),
+    ("none/x.mcap", "no directory none"), (5, "string"), ([], "string"), ({"a": 1}, "string"), (True, "string"),
+])
+def test_record_start_refuses_a_bad_path_with_400_and_its_reason(served, tmp_path, path, says):
+    (tmp_path / "link").symlink_to(tmp_path.parent)
+    status, ans = served.api("POST", "/record/start", body={"path": path})
+    assert status == 400 and says in ans["error"], (status, ans)
+    assert served.service.capture.recorder is None
+    assert not list(tmp_path.parent.glob("*.mcap")) and not list(tmp_path.glob("*.mcap"))
+
+
+def test_record_start_overwrites_only_a_perfcap_session(served, tmp_path):
+    notes = tmp_path / "notes.mcap"
+    notes.write_bytes(b"my notes")
+    for ow in (False, True):
+        status, ans = served.api("POST", "/record/start", body={"path": "notes.mcap", "overwrite": ow})
+        assert status == 409 and "not a perfcap session" in ans["error"], ans
+    assert notes.read_bytes() == b"my notes"
+    assert served.api("POST", "/record/start", body={"path": "take.mcap"})[0] == 200
+    assert served.api("POST", "/record/stop")[0] == 200
+    status, ans = served.api("POST", "/record/start", body={"path": "take.mcap", "overwrite": True})
+    assert (status, ans) == (200, {"recording": str(tmp_path / "take.mcap")})
+    assert served.api("POST", "/record/stop")[0] == 200
+
+
+def test_the_default_sessions_directory_is_private_and_not_the_working_directory(tmp_path, monkeypatch):
+    from capture.app.serve.config import ServeConfig
+    from capture.app.serve.service import Service
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    monkeypatch.chdir(tmp_path)
+    svc = Service(ServeConfig(state_dir=str(tmp_path / "state"), token="t" * 32, mdns=False))
+    try:
+        out = svc.start_recording()
+        assert os.path.dirname(out) == str(tmp_path / "data" / "perfcap" / "sessions")
+        assert (os.stat(os.path.dirname(out)).st_mode & 0o777) == 0o700
+        assert svc.stop_recording()["output"] == out
+        assert not list(tmp_path.glob("*.mcap"))
+    finally:
+        svc.capture.stop()
+
+
 def test_sensorserver_endpoint_connects_a_phone(served, fake_sensorserver, tmp_path):
     """Needs devices/phone_apps.py (kind ``sensorserver``)."""
     for bad in ({"host": "127.0.0.1"}, {"port": 8080}, {"host": 5, "port": 8080}, {"host": "127.0.0.1", "port": "80"}):

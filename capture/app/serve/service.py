@@ -626,6 +626,8 @@ class Service:
             # loop ends first and their sockets are left to the garbage collector
             await asyncio.sleep(0.25)
         self._runners = []
+        if self.gateway.gate is not None:
+            self.gateway.gate.close_all()  # whatever the handlers did not close (a handshake cut short)
         self._close_stragglers()
 
     def _close_stragglers(self) -> None:
