@@ -16,15 +16,14 @@ service's simulators can compare what comes out of the devices with what went in
 
 from __future__ import annotations
 
-import json
 import math
 import random
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from capture.bounded_io import json_loads_bounded, read_bounded
 from devices.codecs.phone_json import (
     PageCodec,
     PageData,
@@ -38,6 +37,7 @@ from sim_devices.motion import G, phone_motion
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
+    from pathlib import Path
 
 _PAGE = PageCodec()
 _SL = SensorLoggerCodec()
@@ -190,14 +190,20 @@ def _measurements(sensor: dict[str, Any], keys: Sequence[str]) -> tuple[np.ndarr
     return np.array(ts, np.int64), np.array(vals, np.float64).reshape(len(ts), len(keys))
 
 
+MAX_DISPEL_BYTES = 64 << 20
+MAX_DISPEL_DEPTH = 64
+
+
 def dispel_samples(path: str | Path) -> DispelRecording:
     """The accelerometer and gyroscope samples of a DISPEL / Konectom JSON recording, per level.
 
     Raises:
         OSError: the file cannot be read.
-        ValueError: it is not a DISPEL recording with accelerometer and gyroscope measurements.
+        ValueError: it is not a DISPEL recording with accelerometer and gyroscope measurements, or it
+            is not a regular file of at most ``MAX_DISPEL_BYTES`` nested at most ``MAX_DISPEL_DEPTH``.
     """
-    doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    # (the real recordings are 0.9 and 2.3 MB; InputLimitError is a ValueError)
+    doc = json_loads_bounded(read_bounded(path, MAX_DISPEL_BYTES), MAX_DISPEL_BYTES, MAX_DISPEL_DEPTH)
     try:
         levels_in = doc["mobileEvaluationTest"]["levels"]
     except (KeyError, TypeError):

@@ -212,3 +212,14 @@ def test_hostile_trace_files_are_refused_under_a_1_gib_address_space_limit(tmp_p
     assert res.stdout.count("refused:") == 9 and "accepted" not in res.stdout, res.stdout
     rss_kib = int(res.stdout.split("maxrss_kib")[1])
     assert rss_kib < 512 * 1024
+
+
+def test_dispel_phone_recordings_are_read_within_bounds(tmp_path, fifo):
+    from sim_devices.phone_sim import dispel_samples
+
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000)   # json.loads alone raised RecursionError
+    for path, message in (("/dev/zero", "character device"), (fifo, "a FIFO"), (str(deep), "nests deeper"),
+                          (sparse(tmp_path, (64 << 20) + 1), r"at most 64\.0 MiB")):
+        with pytest.raises(ValueError, match=message):
+            dispel_samples(path)
