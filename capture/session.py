@@ -99,6 +99,8 @@ def decode_raw_block_run(data: bytes) -> ChunkRun:
     mv = memoryview(data)
     (n,) = _hdr_raw.unpack_from(mv, 0)
     o = _hdr_raw.size
+    if o + 13 * n > len(data):   # a count the block cannot hold: refused before anything is allocated
+        raise ValueError(f"raw block claims {n} chunks in {len(data)} bytes")
     t = _undelta(mv[o:o + 8 * n], n)
     o += 8 * n
     dirs = np.frombuffer(mv[o:o + n], np.uint8).copy()
@@ -129,6 +131,8 @@ def decode_raw_block(data: bytes) -> list[Chunk]:
 def raw_block_span(data: bytes) -> tuple[int, int]:
     """First and last chunk times of a raw block, without decoding the chunks."""
     (n,) = _hdr_raw.unpack_from(data, 0)
+    if n == 0 or _hdr_raw.size + 13 * n > len(data):
+        raise ValueError(f"raw block claims {n} chunks in {len(data)} bytes")
     t = _undelta(memoryview(data)[_hdr_raw.size:_hdr_raw.size + 8 * n], n)
     return int(t[0]), int(t[-1])
 
@@ -196,6 +200,10 @@ def decode_sample_block(stream: str, data: bytes) -> SampleBatch:
         raise ValueError(f"sample block of {stream}: unknown value layout (flags {flags})")
     o = _hdr_samples.size
     k = 4 if flags & 1 else 3
+    # counts the block cannot hold are refused before anything is allocated (each channel takes at
+    # least 1 + 4n bytes)
+    if o + 8 * n * k + c * (1 + 4 * n) > len(data):
+        raise ValueError(f"sample block of {stream} claims {n} samples of {c} channels in {len(data)} bytes")
     times = np.cumsum(np.frombuffer(mv[o:o + 8 * n * k], "<i8").reshape(k, n), axis=1, dtype=np.int64)
     o += 8 * n * k
     seq, th = times[0], times[1]
@@ -462,14 +470,10 @@ class SessionReader:
         self.size = os.path.getsize(path)
         scan = _Scan()
         self.damaged: dict[str, int] = {}
+        #: (first byte, end byte) of each stretch of the file skipped as damaged
+        self.damaged_regions: list[tuple[int, int]] = []
         self._msgs: dict[str, list[bytes]] = {}
-        for topic, _lt, _meta, data in self._records(scan, progress=progress):
-            lst = self._msgs.get(topic)
-            if lst is None:
-                lst = self._msgs[topic] = []
-            lst.append(data)
-        if "format_version" not in scan.meta:
-            raise SessionError(f"{path} is an MCAP file but not a perfcap session", path=path)
+        self._read(scan, progress)
         self._scan = scan
 
     @classmethod
@@ -510,93 +514,142 @@ class SessionReader:
         """Why reading stopped before the footer (a killed recorder), or ``None`` for a complete file."""
         return self._scan.truncated
 
-    def _damage(self, what: str, why: BaseException | str) -> None:
+    def _damage(self, what: str, why: BaseException | str, n: int = 1) -> None:
         """Count a damaged record or block (skipped, never fatal); log the first of each kind."""
-        n = self.damaged.get(what, 0) + 1
-        self.damaged[what] = n
-        if n == 1:
+        seen = self.damaged.get(what, 0)
+        self.damaged[what] = seen + n
+        if seen == 0:
             log.warning("%s: damaged %s skipped (%s); further ones are counted", self.path, what,
                         why if isinstance(why, str) else f"{type(why).__name__}: {why}")
 
-    def _records(self, scan: _Scan, progress: Any = None) -> Iterator[tuple[str, int, dict[str, str], Any]]:
-        """Yield (topic, log_time, channel metadata, message data) for messages; fill ``scan``.
+    def _read(self, scan: _Scan, progress: Any = None) -> None:
+        """Read every record that survives; fill ``scan`` and the messages by topic.
 
-        Records are length-prefixed, so a record that does not parse (or a chunk whose CRC does not
-        match) is skipped and counted in ``damaged``, and reading goes on after it. Reading stops
-        early only where the file ends or a length is impossible (``truncated`` says where).
+        Records are walked by ``session_scan.RecordScanner``: a record or chunk that does not parse
+        exactly (or whose CRC does not match) is skipped to the next one that does, counted in
+        ``damaged`` and its byte range kept in ``damaged_regions``. Channel definitions are taken
+        from wherever they survive: the chunks (CRC-checked), the writer's repeated
+        ``perfcap.definitions`` copies (CRC-checked), then the summary section; so a damaged chunk
+        costs its own messages only.
         """
-        import io
+        from mcap.records import Attachment, Channel, Message, Metadata
 
-        from mcap.data_stream import ReadDataStream
-        from mcap.opcode import Opcode
-        from mcap.records import Attachment, Channel, Chunk, Message, Metadata
-        from mcap.stream_reader import breakup_chunk
+        from capture.session_scan import DEFINITIONS, RecordScanner, decode_definitions, open_bytes
 
         try:
-            f = open(self.path, "rb")
+            f, mm = open_bytes(self.path)
         except OSError as exc:
             raise SessionError(f"cannot read {self.path}: {exc.strerror or exc}", path=self.path) from exc
-        channels: dict[int, Channel] = {}
-        parsers: dict[int, Any] = {Opcode.CHANNEL: Channel.read, Opcode.METADATA: Metadata.read,
-                                   Opcode.ATTACHMENT: Attachment.read, Opcode.CHUNK: Chunk.read}
-        hdr = struct.Struct("<BQ")
+        chunk_ch: dict[int, tuple[str, str, dict[str, str]]] = {}
+        summary_ch: dict[int, tuple[str, str, dict[str, str]]] = {}
+        by_channel: dict[int, list[bytes]] = {}
+        metas: list[Any] = []
+        attachments: list[Any] = []
         try:
-            if f.read(8) != MCAP_MAGIC:
+            head, tail = bytes(mm[:8]), bytes(mm[-8:])
+            if head != MCAP_MAGIC and (len(mm) < 64 or tail != MCAP_MAGIC):
                 raise SessionError(f"{self.path} is not a session file (not MCAP)", path=self.path)
-            while True:
-                pos = f.tell()
-                head = f.read(hdr.size)
-                if len(head) < hdr.size:
-                    scan.truncated = f"file ends at byte {pos} without the MCAP footer (recording cut short)"
-                    return
-                opcode, length = hdr.unpack(head)
-                if length > max(0, self.size - pos - hdr.size):
-                    scan.truncated = f"file ends inside a record at byte {pos} (recording cut short)"
-                    return
-                if opcode == Opcode.FOOTER:
-                    return
-                body = f.read(length)
-                if progress is not None:
-                    progress(f.tell(), self.size)
-                if opcode not in parsers and opcode != Opcode.MESSAGE:
-                    continue  # indexes, statistics, schemas, data end: not needed to read a session
-                try:
-                    rds = ReadDataStream(io.BytesIO(body))
-                    if opcode == Opcode.MESSAGE:
-                        records: list[Any] = [Message.read(rds, length)]
-                    elif opcode == Opcode.CHUNK:
-                        records = breakup_chunk(Chunk.read(rds), validate_crc=True)
-                    else:
-                        records = [parsers[opcode](rds)]
-                except Exception as exc:
-                    self._damage("MCAP record" if opcode != Opcode.CHUNK else "MCAP chunk", exc)
-                    continue
-                for rec in records:
-                    if isinstance(rec, Message):
-                        ch = channels.get(rec.channel_id)
-                        if ch is not None:
-                            yield ch.topic, rec.log_time, ch.metadata, rec.data
-                    elif isinstance(rec, Channel):
-                        channels[rec.id] = rec
-                        if rec.topic.startswith("/samples/"):
-                            try:
-                                info = StreamInfo.from_json(rec.metadata["stream_info"])
-                            except (KeyError, TypeError, ValueError) as exc:
-                                self._damage("stream description", exc)
-                                continue
-                            scan.streams[info.name] = info
-                    elif isinstance(rec, Metadata):
-                        try:
-                            self._metadata(scan, rec.name, rec.metadata)
-                        except (KeyError, TypeError, ValueError) as exc:
-                            self._damage(f"metadata record {rec.name!r}", exc)
-                    elif isinstance(rec, Attachment):
-                        dev, _, key = rec.name.partition("/")
-                        if dev in scan.devices:
-                            scan.devices[dev].descriptors[key] = rec.data
-                            scan.devices[dev].history.setdefault(key, []).append(rec.data)
+            if head != MCAP_MAGIC:
+                self._damage("MCAP magic", "the first 8 bytes are not MCAP's (the footer's are)")
+            scanner = RecordScanner(mm, self._damage, progress)
+            for op, rec in scanner.records():
+                if op == 0x06:
+                    for r in rec:
+                        if isinstance(r, Message):
+                            by_channel.setdefault(r.channel_id, []).append(r.data)
+                        elif isinstance(r, Channel):
+                            chunk_ch.setdefault(r.id, (r.topic, r.message_encoding, r.metadata))
+                elif op == 0x04 and isinstance(rec, Channel):
+                    summary_ch.setdefault(rec.id, (rec.topic, rec.message_encoding, rec.metadata))
+                elif op == 0x0C and isinstance(rec, Metadata):
+                    metas.append(rec)
+                elif op == 0x09 and isinstance(rec, Attachment):
+                    attachments.append(rec)
         finally:
+            if not isinstance(mm, bytes):
+                mm.close()
             f.close()
+        res = scanner.result
+        scan.truncated = res.truncated
+        self.damaged_regions = res.damaged_regions
+        defs: dict[str, Any] = {}
+        for m in metas:
+            if m.name == DEFINITIONS:
+                if not defs:
+                    try:
+                        defs = decode_definitions(m.metadata)
+                    except (KeyError, TypeError, ValueError) as exc:
+                        self._damage("definitions copy", exc)
+                continue
+            try:
+                self._metadata(scan, m.name, m.metadata)
+            except (KeyError, TypeError, ValueError) as exc:
+                self._damage(f"metadata record {m.name!r}", exc)
+        channels = dict(summary_ch)
+        if res.summary_crc_ok is False and summary_ch:
+            self._damage("summary section", "its CRC does not match (its channels used only as a last resort)")
+        for k, c in (defs.get("channels") or {}).items():
+            try:
+                channels[int(k)] = (str(c["topic"]), str(c["encoding"]), dict(c["metadata"]))
+            except (KeyError, TypeError, ValueError) as exc:
+                self._damage("definitions copy", exc)
+        channels.update(chunk_ch)
+        self._recover_definitions(scan, defs, res.header_profile, channels)
+        for cid, datas in by_channel.items():
+            ch = channels.get(cid)
+            if ch is None:
+                self._damage("block of a channel whose definition is lost", f"channel {cid}", len(datas))
+                continue
+            self._msgs.setdefault(ch[0], []).extend(datas)
+        for _cid, (topic, _enc, meta) in sorted(channels.items()):
+            if topic.startswith("/samples/"):
+                try:
+                    info = StreamInfo.from_json(meta["stream_info"])
+                except (KeyError, TypeError, ValueError) as exc:
+                    self._damage("stream description", exc)
+                    continue
+                scan.streams.setdefault(info.name, info)
+        for a in attachments:
+            dev, _, key = a.name.partition("/")
+            if dev in scan.devices:
+                scan.devices[dev].descriptors[key] = a.data
+                scan.devices[dev].history.setdefault(key, []).append(a.data)
+
+    def _recover_definitions(self, scan: _Scan, defs: dict[str, Any], profile: str | None,
+                             channels: dict[int, tuple[str, str, dict[str, str]]]) -> None:
+        """Session and device records from the CRC-checked copy where the originals are lost or
+        differ from it (a metadata record has no CRC of its own).
+
+        Raises:
+            SessionError: nothing in the file says it is a perfcap session.
+        """
+        sess = defs.get("session")
+        if isinstance(sess, dict) and all(isinstance(v, str) for v in sess.values()) and "format_version" in sess:
+            if scan.meta != sess:
+                if scan.meta:
+                    self._damage("session metadata", "it differs from its CRC-checked copy (the copy is used)")
+                else:
+                    self._damage("session metadata", "lost; recovered from its copy")
+                scan.meta = dict(sess)
+        for name, d in (defs.get("devices") or {}).items():
+            try:
+                rec = DeviceRecord(str(name), str(d["kind"]), str(d["url"]), dict(d["options"]),
+                                   dict(d["identity"]), [str(s) for s in d["streams"]])
+            except (KeyError, TypeError, ValueError) as exc:
+                self._damage("definitions copy", exc)
+                continue
+            old = scan.devices.get(rec.name)
+            if old is None or (old.kind, old.url, old.options, old.identity, old.streams) != (
+                    rec.kind, rec.url, rec.options, rec.identity, rec.streams):
+                self._damage("device record", "lost or differing from its CRC-checked copy (the copy is used)")
+                scan.devices[rec.name] = rec
+        if "format_version" not in scan.meta:
+            perfcap = profile == "perfcap" or any(enc in (RAW_ENCODING, SAMPLES_ENCODING)
+                                                 for _t, enc, _m in channels.values())
+            if not perfcap:
+                raise SessionError(f"{self.path} is an MCAP file but not a perfcap session", path=self.path)
+            self._damage("session metadata", "lost (no copy survived)")
+            scan.meta = {"format_version": FORMAT_VERSION}
 
     @staticmethod
     def _metadata(scan: _Scan, name: str, m: dict[str, str]) -> None:

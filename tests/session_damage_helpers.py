@@ -1,0 +1,131 @@
+"""Damage sweeps over a real multi-chunk session, shared by the CI test
+(``tests/unit/capture/test_session_damage.py``) and the full campaign
+(``benchmarks/session_damage.py``).
+
+``make_session`` records a session of several synthetic devices (several streams, several MCAP
+chunks) through the real recorder; ``chunk_map`` lists its chunks and the samples each holds, read
+with the ``mcap`` library from the pristine file; ``sweep`` damages copies of it (single-byte flips,
+zeroed blocks, at seeded random offsets), reads each with ``SessionReader`` and compares what came
+back with what the damaged chunks held.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import random
+import struct
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from capture.app.orchestrator import Capture
+from capture.errors import SessionError
+from capture.session import SessionReader
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+
+def make_session(path: Path | str, seconds: int = 10, max_loss_s: float = 0.1) -> None:
+    """A session of three synthetic devices, flushed often enough to hold many chunks."""
+    d = f"realtime=false&duration={seconds}"
+    Capture([f"a=synth://imu?rate=200&{d}", f"b=synth://imu?rate=100&seed=2&{d}",
+             f"c=synth://imu?rate=50&seed=3&{d}"],
+            output=str(path), fsync=False, overwrite=True, max_loss_s=max_loss_s).run(None)
+
+
+@dataclass
+class ChunkInfo:
+    start: int
+    end: int          # end of the chunk and of its message indexes
+    samples: int      # samples in its sample blocks
+
+
+def chunk_map(data: bytes) -> list[ChunkInfo]:
+    """The chunks of a pristine session and the samples each holds."""
+    from mcap.reader import make_reader
+    from mcap.records import Message
+    from mcap.stream_reader import breakup_chunk
+
+    reader = make_reader(io.BytesIO(data))
+    summary = reader.get_summary()
+    assert summary is not None
+    samples_ids = {c.id for c in summary.channels.values() if c.topic.startswith("/samples/")}
+    out = []
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        body = data[ci.chunk_start_offset + 9:ci.chunk_start_offset + ci.chunk_length]
+        ch = Chunk.read(ReadDataStream(io.BytesIO(body)))
+        n = sum(struct.unpack_from("<I", r.data)[0] for r in breakup_chunk(ch)
+                if isinstance(r, Message) and r.channel_id in samples_ids)
+        out.append(ChunkInfo(ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length
+                             + ci.message_index_length, n))
+    return out
+
+
+def total_samples(reader: SessionReader) -> dict[str, set[int]]:
+    return {s: set(reader.samples(s).seq.tolist()) for s in reader.streams}
+
+
+@dataclass
+class SweepResult:
+    tried: int = 0
+    lost_sessions: int = 0
+    over_budget: int = 0          # cases that lost more than the damaged chunks held
+    damaged_reported: int = 0     # cases where samples were lost and the reader said so
+    silent_losses: int = 0        # cases that lost samples without reporting damage
+    max_lost: int = 0
+    max_lost_allowed: int = 0     # the damaged chunks' samples in the case that lost the most
+    largest_chunk: int = 0
+    failures: list[str] = field(default_factory=list)
+
+
+def sweep(pristine: Path, work: Path, *, flips: int, blocks: int, block_bytes: int = 4096,
+          seed: int = 16) -> SweepResult:
+    """Damage copies of ``pristine`` and read each; see ``SweepResult``."""
+    data = pristine.read_bytes()
+    chunks = chunk_map(data)
+    ref = total_samples(SessionReader(str(pristine)))
+    n_ref = sum(len(v) for v in ref.values())
+    res = SweepResult(largest_chunk=max(c.samples for c in chunks))
+    rng = random.Random(seed)
+    cases = [("flip", rng.randrange(len(data)), 1) for _ in range(flips)]
+    cases += [("zero", rng.randrange(len(data) - block_bytes), block_bytes) for _ in range(blocks)]
+    path = work / "damaged.mcap"
+    for kind, at, width in cases:
+        bad = bytearray(data)
+        if kind == "flip":
+            bad[at] ^= 1 << rng.randrange(8)
+        else:
+            bad[at:at + width] = bytes(width)
+        if bad == data:
+            continue
+        res.tried += 1
+        path.write_bytes(bytes(bad))
+        os.utime(path, ns=(res.tried, res.tried))
+        allowed = sum(c.samples for c in chunks if c.start < at + width and at < c.end)
+        what = f"{kind} at byte {at} (+{width})"
+        try:
+            r = SessionReader(str(path))
+            got = total_samples(r)
+        except SessionError as exc:
+            res.lost_sessions += 1
+            res.failures.append(f"{what}: session lost: {exc}")
+            continue
+        extra = [s for s in got if s not in ref or not got[s] <= ref[s]]
+        if extra:
+            res.failures.append(f"{what}: samples that were never recorded in {extra}")
+        lost = n_ref - sum(len(v) for v in got.values())
+        if lost > res.max_lost:
+            res.max_lost, res.max_lost_allowed = lost, allowed
+        if lost > allowed:
+            res.over_budget += 1
+            res.failures.append(f"{what}: lost {lost} samples, the damaged chunks held {allowed}")
+        if lost:
+            if r.damaged:
+                res.damaged_reported += 1
+            else:
+                res.silent_losses += 1
+                res.failures.append(f"{what}: lost {lost} samples without reporting damage")
+    return res
