@@ -326,6 +326,7 @@ class SessionWriter:
              "start_wall_time_s": repr(wall_time_s if wall_time_s is not None else MONOTONIC.wall_time_s())}
         m.update(meta or {})
         self._w.add_metadata("perfcap.session", m)
+        self._note_definitions("session", m)
         self._raw_schema = self._w.register_schema("perfcap.RawBlock", "text", RAW_SCHEMA_DOC.encode())
         self._smp_schema = self._w.register_schema("perfcap.SampleBlock", "text", SAMPLES_SCHEMA_DOC.encode())
         self._channels: dict[str, int] = {}
@@ -339,6 +340,8 @@ class SessionWriter:
         cid = self._channels.get(topic)
         if cid is None:
             cid = self._w.register_channel(topic, encoding, schema, metadata or {})
+            self._note_definitions("channels", {"topic": topic, "encoding": encoding, "metadata": metadata or {}},
+                                   str(cid))
             self._channels[topic] = cid
         return cid
 
@@ -346,6 +349,8 @@ class SessionWriter:
         self._w.add_metadata(f"device:{rec.name}", {
             "kind": rec.kind, "url": rec.url, "options": json.dumps(rec.options, sort_keys=True),
             "identity": json.dumps(rec.identity, sort_keys=True), "streams": json.dumps(rec.streams)})
+        self._note_definitions("devices", {"kind": rec.kind, "url": rec.url, "options": rec.options,
+                                           "identity": rec.identity, "streams": rec.streams}, rec.name)
         for key, blob in rec.descriptors.items():
             self._w.add_attachment(0, 0, f"{rec.name}/{key}", "application/octet-stream", blob)
         self._channel(f"/raw/{rec.name}", RAW_ENCODING, self._raw_schema, {"device": rec.name, "kind": rec.kind})
@@ -386,6 +391,34 @@ class SessionWriter:
     def write_event(self, ev: DeviceEvent, now_ns: int) -> None:
         self._add(self._events, ev.t_host_ns, json.dumps(ev.to_dict()).encode(), now_ns)
 
+    # -- redundant definitions: no single chunk or record holds the only copy -----------------------
+    #: session metadata, devices and channels, as the CRC-checked ``perfcap.definitions`` copy holds them
+    _defs: dict[str, Any] | None = None
+    #: copies still to write (each change is written after the next two flushes, a chunk apart)
+    _defs_due: int = 0
+
+    def _note_definitions(self, section: str, value: Any, key: str | None = None) -> None:
+        if self._defs is None:
+            self._defs = {"session": {}, "devices": {}, "channels": {}}
+        if key is None:
+            self._defs[section] = value
+        else:
+            self._defs[section][key] = value
+        self._defs_due = 2
+
+    def _repeat_definitions(self) -> None:
+        """After a flush: one more copy of the definitions, if they changed within the last two."""
+        if self._defs is None or self._defs_due <= 0:
+            return
+        self._defs_due -= 1
+        from capture.session_scan import DEFINITIONS, encode_definitions
+
+        defs = dict(self._defs)
+        defs["channels"] = {**defs["channels"], str(self._events): {"topic": "/events", "encoding": "json",
+                                                                     "metadata": {}}}
+        self._w.add_metadata(DEFINITIONS, encode_definitions(defs))
+        self._w.flush()
+
     def flush(self) -> None:
         """Close the current MCAP chunk and push it to the disk (fsync if asked); what is on disk then
         is complete, and a later failure cuts the file back to it.
@@ -395,6 +428,7 @@ class SessionWriter:
         """
         try:
             self._w.flush()
+            self._repeat_definitions()
             self._sync()
         except OSError as exc:
             raise SessionError(f"writing {self.path} failed: {exc.strerror or exc}", path=self.path) from exc
@@ -574,12 +608,17 @@ class SessionReader:
         self.damaged_regions = res.damaged_regions
         defs: dict[str, Any] = {}
         for m in metas:
-            if m.name == DEFINITIONS:
-                if not defs:
-                    try:
-                        defs = decode_definitions(m.metadata)
-                    except (KeyError, TypeError, ValueError) as exc:
-                        self._damage("definitions copy", exc)
+            if m.name == DEFINITIONS:  # each copy holds all definitions so far: merged, the latest wins
+                try:
+                    d = decode_definitions(m.metadata)
+                except (KeyError, TypeError, ValueError) as exc:
+                    self._damage("definitions copy", exc)
+                    continue
+                for section in ("devices", "channels"):
+                    if isinstance(d.get(section), dict):
+                        defs.setdefault(section, {}).update(d[section])
+                if "session" in d:
+                    defs["session"] = d["session"]
                 continue
             try:
                 self._metadata(scan, m.name, m.metadata)
