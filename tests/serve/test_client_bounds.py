@@ -22,7 +22,7 @@ import pytest
 from serve_helpers import DEADLINE_S
 
 from capture.app.serve.config import Limits, ServeConfig
-from capture.app.serve.gateway import CLOSE_RATE, CLOSE_TOO_MANY
+from capture.app.serve.gateway import CLOSE_RATE, CLOSE_SHUTDOWN, CLOSE_TOO_MANY
 from capture.app.serve.security import RateBook
 from capture.clock import ManualClock
 from capture.errors import ConfigError
@@ -397,3 +397,52 @@ def test_rate_book_forgets_full_buckets_first():
     assert not book.allow("d", t)      # d is empty
     book.allow("g", t)                 # e and f are full: forgotten; d is kept, still empty
     assert len(book) == 2 and not book.allow("d", t) and book.evicted == 0
+
+
+def test_stopping_closes_paired_phones_properly_and_gives_every_connection_back(serve):
+    """The gate resets only connections still in their handshake when the service stops: a paired
+    phone hears the shutdown close code, and nothing is left held."""
+    served = serve()
+    gate = served.service.gateway.gate
+    half_open = _raw(served.port)
+    served.wait(lambda: gate.handshakes == 1, DEADLINE_S, "one handshake in progress")
+
+    async def go() -> int | None:
+        async with _client() as s:
+            ws, welcome = await _page(served, s, "shutdown-phone")
+            assert json.loads(welcome.data)["type"] == "welcome"
+            stopper = asyncio.get_running_loop().run_in_executor(None, served.stop)
+            code = await _close_code(ws)
+            await ws.close()
+            await stopper
+            return code
+
+    assert asyncio.run(go()) == CLOSE_SHUTDOWN
+    assert _closed_by_server(half_open)
+    half_open.close()
+    assert gate.open == 0 and gate.handshakes == 0
+
+
+def test_plain_http_goes_through_the_gate_too(serve):
+    served = serve(tls=False, limits=Limits(handshake_timeout_s=1.0))
+    gate = served.service.gateway.gate
+
+    async def go() -> Any:
+        async with _client() as s:
+            ws = await s.ws_connect(f"ws://127.0.0.1:{served.port}/ws/phone", autoping=True, heartbeat=None)
+            await ws.send_str(page_hello("plain-phone", token=served.token).decode())
+            first = await ws.receive(timeout=DEADLINE_S)
+            for _ in range(5):
+                await ws.send_str(_data())
+            await ws.close()
+            return json.loads(first.data)["type"]
+
+    assert asyncio.run(go()) == "welcome"
+    box = served.service.phones.hub.get("page/plain-phone")
+    served.wait(lambda: not box.connected, DEADLINE_S, "the plain phone gone")
+    assert box.received == 1 + 5
+    silent = _raw(served.port)                   # plain TCP, no request: the same handshake deadline
+    assert _closed_by_server(silent)
+    silent.close()
+    assert served.rejected() == {"handshake timeout": 1}
+    served.wait(lambda: gate.open == 0, DEADLINE_S, "every connection given back")

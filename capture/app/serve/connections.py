@@ -269,8 +269,18 @@ class ConnectionGate:
 
         return mark
 
+    def stop_accepting(self) -> None:
+        """Admit no more connections and reset those still in their handshake; established ones are
+        left to their handlers, so paired phones hear a proper close."""
+        self._closing = True
+        for c in [c for c in self._conns if c.handshaking]:
+            if c.task is not None and not c.task.done():
+                c.task.cancel()
+            c.abort()
+            self._gone(c)
+
     def close_all(self) -> None:
-        """Stop admitting and reset every connection still held (the service is stopping)."""
+        """Stop admitting and reset every connection still held (the service has stopped)."""
         self._closing = True
         for c in list(self._conns):
             if c.task is not None and not c.task.done():
@@ -305,5 +315,5 @@ class GatedSite(web.BaseSite):
             self.bound_port = int(socks[0].getsockname()[1])
 
     async def stop(self) -> None:
-        self.gate.close_all()
+        self.gate.stop_accepting()
         await super().stop()
