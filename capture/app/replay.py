@@ -35,11 +35,18 @@ log = logging.getLogger(__name__)
 class ReplayVerifier(Subscriber):
     """Compares replayed samples with the recorded ones, stream by stream, on the first pass.
 
-    Values must be bit-identical, and so must the sequence number, device time and bus time; host
-    times too when the replay keeps recorded stamps. Batches are compared as whole columns.
+    Samples are matched on their sequence numbers, not their positions: a recorded block that was
+    lost to damage leaves replayed samples with no recorded counterpart (``not_recorded``), a lost
+    raw block leaves recorded samples that are never replayed (``missing``), and neither shifts the
+    comparison of the rest. When a hole in the raw data renumbers the replayed samples after it,
+    the numbering is re-anchored on the recorded host time. Matched samples must be bit-identical
+    in values, sequence number, device time and bus time; host times too when the replay keeps
+    recorded stamps. Batches are compared as whole columns.
     """
 
     accepts = frozenset({Sample, SampleBatch})
+    #: how many missing or not-recorded runs are listed per stream
+    MAX_RANGES = 20
 
     def __init__(self, recorded: dict[str, SampleBatch], check_host_times: bool = True) -> None:
         self.recorded = recorded
@@ -49,6 +56,32 @@ class ReplayVerifier(Subscriber):
         self.first_mismatch: dict[str, str] = {}
         self.unexpected: dict[str, int] = {}
         self._bits = {s: np.ascontiguousarray(b.values).view(np.int64) for s, b in recorded.items()}
+        self._matched = {s: np.zeros(len(b), bool) for s, b in recorded.items()}
+        self._order = {s: np.argsort(b.seq, kind="stable") for s, b in recorded.items()}
+        self._sorted_seq = {s: b.seq[self._order[s]] for s, b in recorded.items()}
+        self._offset: dict[str, int] = dict.fromkeys(recorded, 0)
+        self._done: set[str] = set()
+        self._extra: dict[str, list[tuple[int, int, int, int]]] = {s: [] for s in recorded}
+        self.not_recorded: dict[str, int] = dict.fromkeys(recorded, 0)
+        #: samples matched only after re-anchoring (their replayed numbers differ from the recorded)
+        self.renumbered: dict[str, int] = dict.fromkeys(recorded, 0)
+
+    def _lookup(self, stream: str, seq: np.ndarray) -> np.ndarray:
+        """Recorded index of each replayed seq (after the offset), -1 where there is none."""
+        ss = self._sorted_seq[stream]
+        key = seq + self._offset[stream]
+        pos = np.searchsorted(ss, key)
+        pos_c = np.minimum(pos, max(len(ss) - 1, 0))
+        found = (pos < len(ss)) & (ss[pos_c] == key) if len(ss) else np.zeros(len(seq), bool)
+        return np.where(found, self._order[stream][pos_c] if len(ss) else -1, -1)
+
+    def _reanchor(self, stream: str, item: SampleBatch) -> None:
+        """After a hole in the raw data the replayed numbering may be shifted: find the recorded
+        sample with the first replayed sample's host time and number from there."""
+        rec = self.recorded[stream]
+        j = int(np.searchsorted(rec.t_host_ns, item.t_host_ns[0]))
+        if j < len(rec) and rec.t_host_ns[j] == item.t_host_ns[0] and not self._matched[stream][j]:
+            self._offset[stream] = int(rec.seq[j]) - int(item.seq[0])
 
     def on_item(self, item: Any) -> None:
         rec = self.recorded.get(item.stream)
@@ -56,40 +89,85 @@ class ReplayVerifier(Subscriber):
             n = 1 if type(item) is Sample else len(item)
             self.unexpected[item.stream] = self.unexpected.get(item.stream, 0) + n
             return
-        if type(item) is Sample:
-            item = SampleBatch.from_samples(item.stream, [item], rec.values.shape[1] if rec.values.ndim == 2 else 0)
-        i = self.compared[item.stream]
-        n = min(len(item), len(rec) - i)
-        if n <= 0:
+        s = item.stream
+        if s in self._done or not len(rec):
             return  # later loop passes, or readings past a truncated recording's last block
-        self.compared[item.stream] = i + n
-        sl = slice(i, i + n)
-        ok = (item.seq[:n] == rec.seq[sl]) & (item.t_device_ns[:n] == rec.t_device_ns[sl]) \
-            & (item.t_bus_ns[:n] == rec.t_bus_ns[sl])
+        if type(item) is Sample:
+            item = SampleBatch.from_samples(s, [item], rec.values.shape[1] if rec.values.ndim == 2 else 0)
+        if not len(item):
+            return
+        idx = self._lookup(s, item.seq)
+        if idx[0] < 0 or (self.check_host and rec.t_host_ns[idx[0]] != item.t_host_ns[0]):
+            self._reanchor(s, item)
+            idx = self._lookup(s, item.seq)
+        have = idx >= 0
+        have[have] &= ~self._matched[s][idx[have]]   # a recorded sample is matched once
+        extra = np.flatnonzero(~have)
+        if extra.size:
+            self.not_recorded[s] += int(extra.size)
+            self._note_runs(self._extra[s], item.seq[extra], item.t_bus_ns[extra])
+        if not have.any():
+            return
+        k = np.flatnonzero(have)
+        ri = idx[k]
+        self._matched[s][ri] = True
+        self.compared[s] += int(k.size)
+        ok = (item.t_device_ns[k] == rec.t_device_ns[ri]) & (item.t_bus_ns[k] == rec.t_bus_ns[ri])
+        if self._offset[s]:
+            self.renumbered[s] += int(k.size)
         if self.check_host:
-            ok &= item.t_host_ns[:n] == rec.t_host_ns[sl]
-        vals = np.ascontiguousarray(item.values[:n])
+            ok &= item.t_host_ns[k] == rec.t_host_ns[ri]
+        vals = np.ascontiguousarray(item.values[k])
         if vals.shape[1:] != rec.values.shape[1:]:
             ok[:] = False
         else:
-            ok &= np.all(vals.view(np.int64) == self._bits[item.stream][sl], axis=1)
+            ok &= np.all(vals.view(np.int64) == self._bits[s][ri], axis=1)
         bad = np.flatnonzero(~ok)
         if bad.size:
-            self.mismatches[item.stream] += int(bad.size)
-            if item.stream not in self.first_mismatch:
-                j = int(bad[0])
-                self.first_mismatch[item.stream] = (
+            self.mismatches[s] += int(bad.size)
+            if s not in self.first_mismatch:
+                j, i = int(k[bad[0]]), int(ri[bad[0]])
+                self.first_mismatch[s] = (
                     f"seq {int(item.seq[j])}: replayed host={int(item.t_host_ns[j])} device={int(item.t_device_ns[j])} "
                     f"bus={int(item.t_bus_ns[j])} values={tuple(item.values[j].tolist())} but recorded "
-                    f"seq={int(rec.seq[i + j])} host={int(rec.t_host_ns[i + j])} device={int(rec.t_device_ns[i + j])} "
-                    f"bus={int(rec.t_bus_ns[i + j])} values={tuple(rec.values[i + j].tolist())}")
+                    f"seq={int(rec.seq[i])} host={int(rec.t_host_ns[i])} device={int(rec.t_device_ns[i])} "
+                    f"bus={int(rec.t_bus_ns[i])} values={tuple(rec.values[i].tolist())}")
+        if self._matched[s][-1]:
+            self._done.add(s)   # the first pass reached the recording's end
+
+    def _note_runs(self, runs: list[tuple[int, int, int, int]], seq: np.ndarray, bus: np.ndarray) -> None:
+        """Add (first seq, last seq, first bus ns, last bus ns) runs of consecutive seqs."""
+        cuts = np.flatnonzero(np.diff(seq) != 1) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(seq)], strict=True):
+            if runs and runs[-1][1] + 1 == int(seq[a]):
+                runs[-1] = (runs[-1][0], int(seq[b - 1]), runs[-1][2], int(bus[b - 1]))
+            elif len(runs) < self.MAX_RANGES:
+                runs.append((int(seq[a]), int(seq[b - 1]), int(bus[a]), int(bus[b - 1])))
 
     def result(self) -> dict[str, Any]:
         per = {}
         for s, b in self.recorded.items():
-            per[s] = {"recorded": len(b), "compared": self.compared[s], "mismatches": self.mismatches[s],
-                      "missing": len(b) - self.compared[s]}
-        ok = all(v["mismatches"] == 0 and v["missing"] == 0 for v in per.values()) and not self.unexpected
+            miss = np.flatnonzero(~self._matched[s])
+            runs: list[tuple[int, int, int, int]] = []
+            if miss.size:
+                order = miss[np.argsort(b.seq[miss], kind="stable")]
+                self._note_runs(runs, b.seq[order], b.t_bus_ns[order])
+            ss = self._sorted_seq[s]
+            holes = np.flatnonzero(np.diff(ss) > 1)
+            bus = b.t_bus_ns[self._order[s]]
+            per[s] = {"recorded": len(b),
+                      "absent": int((np.diff(ss)[holes] - 1).sum()) if holes.size else 0,
+                      "absent_ranges": [{"seq": [int(ss[h]) + 1, int(ss[h + 1]) - 1],
+                                         "bus_ns": [int(bus[h]), int(bus[h + 1])]}
+                                        for h in holes[:self.MAX_RANGES]],
+                      "compared": self.compared[s], "mismatches": self.mismatches[s],
+                      "missing": int(miss.size), "not_recorded": self.not_recorded[s],
+                      "renumbered": self.renumbered[s],
+                      "missing_ranges": [{"seq": [r[0], r[1]], "bus_ns": [r[2], r[3]]} for r in runs],
+                      "not_recorded_ranges": [{"seq": [r[0], r[1]], "bus_ns": [r[2], r[3]]}
+                                              for r in self._extra[s]]}
+        ok = all(v["mismatches"] == 0 and v["missing"] == 0 and v["not_recorded"] == 0 and v["renumbered"] == 0
+                 for v in per.values()) and not self.unexpected
         return {"equal": ok, "streams": per, "unexpected": self.unexpected, "first_mismatch": self.first_mismatch}
 
 
@@ -101,6 +179,36 @@ class ReplayReport:
     recorded_span_s: float = 0.0
     replayed_span_s: float = 0.0
     stopped_early: bool = False
+
+
+def describe_verification(ver: dict[str, Any], stopped_early: bool = False) -> list[str]:
+    """The lines ``perfcap replay`` prints for a verification result: the damage a damaged session
+    showed (per stream, how many samples and which seq and bus-time ranges), then either that every
+    compared sample is equal or where they differ."""
+    lines = []
+    if ver.get("damaged"):
+        lines.append("  DAMAGED session (skipped: " + ", ".join(f"{n} x {w}" for w, n in sorted(ver["damaged"].items()))
+                     + "); the surviving samples are compared")
+        for name, v in ver["streams"].items():
+            for key, what in (("absent", "absent from the recording (lost with the damage, or dropped live)"),
+                              ("missing", "recorded, not replayed (their raw data is lost)"),
+                              ("not_recorded", "replayed, their recorded block is lost")):
+                if v.get(key):
+                    spans = ", ".join(f"seq {r['seq'][0]}-{r['seq'][1]} (bus {r['bus_ns'][0] / 1e9:.3f}-"
+                                      f"{r['bus_ns'][1] / 1e9:.3f} s)" for r in v[f"{key}_ranges"][:3])
+                    more = " ..." if len(v[f"{key}_ranges"]) > 3 else ""
+                    lines.append(f"    {name}: {v[key]} {what}: {spans}{more}")
+    if ver["equal"] or (stopped_early and not any(v["mismatches"] for v in ver["streams"].values())):
+        n = sum(v["compared"] for v in ver["streams"].values())
+        lines.append(f"verified: all {n} replayed samples equal the recorded ones")
+        return lines
+    for name, v in ver["streams"].items():
+        if v["mismatches"] or v["missing"] or v["not_recorded"] or v["renumbered"]:
+            lines.append(f"  MISMATCH {name}: {v['mismatches']} differ, {v['missing']} not reproduced, "
+                         f"{v['not_recorded']} not recorded, {v['renumbered']} numbered differently")
+    for name, m in ver["first_mismatch"].items():
+        lines.append(f"  first difference in {name}: {m}")
+    return lines
 
 
 def session_span(reader: SessionReader) -> tuple[int, int]:
@@ -182,6 +290,12 @@ def run_merged(cap: Capture, duration_s: float | None = None, window_s: float = 
                 except EndOfStream:
                     finished(d)
             edge += step
+            # a stretch of recorded time with nothing in it (a pause, or a crafted time far ahead) is
+            # jumped over, not walked through in window steps
+            ahead = [t for t in (sources[d.name].first_time_ns() for d in active if sources[d.name].batches)
+                     if t is not None]
+            if ahead and min(ahead) >= edge:
+                edge = min(ahead) + step
             # paced sources: chunk by chunk, the earliest first, until the window edge
             paced = [d for d in active if not sources[d.name].batches]
             while paced and not time_up():
@@ -290,16 +404,16 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
             lateness.extend(d.transport.lateness_ns)
     result = verifier.result() if verifier else None
     if result is not None:
-        # Streams whose recorded blocks (or whose device's raw blocks) were damaged cannot be compared.
-        bad = {t for t in reader.damaged if t.startswith("block of ")}
-        for s, v in result["streams"].items():
-            dev = s.split("/")[0]
-            if f"block of /samples/{s}" in bad or f"block of /raw/{dev}" in bad:
-                v["unverifiable"] = True
+        # A damaged session: the samples that survive on both sides are compared; the holes the
+        # damage left (recorded samples never replayed, replayed ones whose recorded block is lost)
+        # are reported, not counted as differences.
+        result["damaged"] = dict(reader.damaged)
         for name in new_streams:  # computed now, never recorded: nothing to compare with
             result["unexpected"].pop(name, None)
-        result["equal"] = all(v.get("unverifiable") or (v["mismatches"] == 0 and v["missing"] == 0)
-                              for v in result["streams"].values()) and not result["unexpected"]
+        holes_ok = bool(reader.damaged)
+        result["equal"] = all(v["mismatches"] == 0 and (holes_ok or (
+            v["missing"] == 0 and v["not_recorded"] == 0 and v["renumbered"] == 0))
+            for v in result["streams"].values()) and not result["unexpected"]
     firsts = [c.first_bus_ns for c in cap.stats.streams.values() if c.first_bus_ns is not None]
     lasts = [c.last_bus_ns for c in cap.stats.streams.values() if c.last_bus_ns is not None]
     replayed = (max(lasts) - min(firsts)) / 1e9 if firsts and lasts else 0.0
@@ -308,4 +422,4 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     return ReplayReport(report, result, lateness, (t_end - t0) / 1e9, replayed, early)
 
 
-__all__ = ["ReplayReport", "ReplayVerifier", "replay_session", "run_merged", "session_span"]
+__all__ = ["ReplayReport", "ReplayVerifier", "describe_verification", "replay_session", "run_merged", "session_span"]

@@ -44,7 +44,7 @@ def add_parser(sub: Subcommands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.app.replay import replay_session
+    from capture.app.replay import describe_verification, replay_session
 
     speed = 0.0 if args.fast else args.speed
     if speed is None:
@@ -79,18 +79,8 @@ def run(args: argparse.Namespace) -> int:
         for name, s in rep.capture.streams.items():
             out(f"  {name:24s} {s['samples']:8d} samples")
         if ver is not None:
-            unver = [s for s, v in ver["streams"].items() if v.get("unverifiable")]
-            if unver:
-                out(f"  not verified (their recorded blocks are damaged): {', '.join(unver)}")
-            if ver["equal"] or (rep.stopped_early and not any(v["mismatches"] for v in ver["streams"].values())):
-                n = sum(v["compared"] for v in ver["streams"].values())
-                out(f"verified: all {n} replayed samples equal the recorded ones")
-            else:
-                for name, v in ver["streams"].items():
-                    if v["mismatches"] or v["missing"]:
-                        out(f"  MISMATCH {name}: {v['mismatches']} differ, {v['missing']} not reproduced")
-                for name, m in ver["first_mismatch"].items():
-                    out(f"  first difference in {name}: {m}")
+            for line in describe_verification(ver, rep.stopped_early):
+                out(line)
     failed = [n for n, d in rep.capture.devices.items() if d["state"] == "failed"]
     if failed:
         err(f"perfcap: error: device(s) failed during replay: {', '.join(failed)}")
