@@ -14,6 +14,7 @@ ones the tests use (``tests/unit/devices/test_hid_bounds.py``, ``test_trace_boun
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import random
@@ -242,7 +243,7 @@ def calibration_family(n: int, tmp: str) -> tuple[list[Campaign], list[dict[str,
             node = doc
             for k in where[:-1]:
                 node = node[k]
-            node[where[-1]] = rng.choice(odd)
+            node[where[-1]] = copy.deepcopy(rng.choice(odd))  # (a shared list would make a cycle)
         try:
             text = json.dumps(doc)
         except ValueError:

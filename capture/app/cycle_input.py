@@ -220,20 +220,19 @@ def csv_cycle_input(path: str, columns: list[str] | None) -> CycleInput:
             if not idx:
                 raise ConfigError(f"{path}: no channel columns besides the time column {names[t_col]!r}")
         data = np.full((n_body, len(idx) + 1), np.nan)
-        cols = [t_col, *idx]
+        cols, nan = [t_col, *idx], float("nan")
         for r, row in enumerate(body):
             if same_length:
                 row = row[:width]  # noqa: PLW2901 - the dropped trailing columns
             if len(row) != width:
                 raise ConfigError(f"{path} line {r + 1 + header}: {len(row)} fields where the header has {width}")
-            for j, col in enumerate(cols):
-                cell = row[col].strip()
-                if cell:
-                    v = _number(cell)
-                    if v is None:
-                        raise ConfigError(f"{path} line {r + 1 + header}, column {names[col]!r}: {cell!r}"
-                                          " is not a number")
-                    data[r, j] = v
+            cells = [row[col].strip() for col in cols]
+            try:
+                data[r] = [float(c) if c else nan for c in cells]
+            except ValueError:
+                bad = next(j for j, c in enumerate(cells) if c and _number(c) is None)
+                raise ConfigError(f"{path} line {r + 1 + header}, column {names[cols[bad]]!r}: {cells[bad]!r}"
+                                  " is not a number") from None
         del text
     except UnicodeDecodeError:
         raise ConfigError(f"{path} is neither a perfcap session nor a text CSV file") from None
