@@ -566,8 +566,6 @@ class Service:
                 self.phones.sweep()
             except CaptureError as exc:
                 log.error("releasing the slots of phones that left: %s", exc)
-            if self.gateway.gate is not None:
-                self.gateway.gate.give_back_memory()
 
     async def _site(self, app: web.Application, host: str, port: int, ssl_ctx: Any, what: str,
                     gated: bool = False) -> int:
