@@ -136,7 +136,7 @@ class ImuCalibration:
         set_(self, "mounting", tuple(float(x) for x in m))
         try:
             y = float(self.yaw_offset_rad)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise ConfigError(f"calibration field 'yaw_offset_rad' must be a number, got {self.yaw_offset_rad!r}",
                               source=src) from exc
         if not math.isfinite(y):

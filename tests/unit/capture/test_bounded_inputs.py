@@ -118,6 +118,20 @@ def test_a_hostile_calibration_file_in_the_store_is_refused_and_listed(tmp_path)
     assert path == p and doc is None and "FIFO" in (err or "")
 
 
+@pytest.mark.parametrize("field", ["yaw_offset_rad", "gyro_bias_rad_s", "acc_matrix", "mounting_wxyz"])
+def test_an_integer_past_float_range_in_any_field_is_a_config_error(field):
+    """(OverflowError escaped from yaw_offset_rad, found by benchmarks/bench_hostile_inputs.py)"""
+    doc = real_document()
+    value = doc["calibration"][field]
+    if isinstance(value, list):
+        value[0] = [10**400, 0, 0] if isinstance(value[0], list) else 10**400
+    else:
+        value = 10**400
+    doc["calibration"][field] = value
+    with pytest.raises(ConfigError, match=field.split("_wxyz")[0].split("_rad_s")[0]):
+        parse_calibration_document(json.dumps(doc), "session: imu/calibration")
+
+
 _JSON = st.recursive(st.none() | st.booleans() | st.floats() | st.integers() | st.text(max_size=8),
                      lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=6), kids, max_size=4),
                      max_leaves=20)
@@ -143,7 +157,7 @@ def test_damaged_real_calibration_documents_load_or_are_config_errors(data):
         node = doc
         for k in where[:-1]:
             node = node[k]
-        node[where[-1]] = data.draw(_JSON | st.sampled_from([float("nan"), 1e308, -1e308, "1e999", [[[[]]]]]))
+        node[where[-1]] = data.draw(_JSON | st.sampled_from([float("nan"), 1e308, -1e308, "1e999", [[[[]]]], 10**400]))
     text = json.dumps(doc)
     if data.draw(st.booleans()):
         i = data.draw(st.integers(0, len(text)))
