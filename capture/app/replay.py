@@ -102,7 +102,8 @@ class ReplayVerifier(Subscriber):
             idx = self._lookup(s, item.seq)
         have = idx >= 0
         have[have] &= ~self._matched[s][idx[have]]   # a recorded sample is matched once
-        extra = np.flatnonzero(~have)
+        # past the recording's last sample: a truncated recording's raw data outlives its blocks
+        extra = np.flatnonzero(~have & (item.seq + self._offset[s] <= self._sorted_seq[s][-1]))
         if extra.size:
             self.not_recorded[s] += int(extra.size)
             self._note_runs(self._extra[s], item.seq[extra], item.t_bus_ns[extra])

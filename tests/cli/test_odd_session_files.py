@@ -45,12 +45,8 @@ def test_damaged_session_is_read_around_the_damage(tmp_path, capsys):
             assert code in (0, 1, 2), (argv, code, err)
             if code == 2:
                 assert err.startswith("perfcap: error:"), err
-        try:
-            r = SessionReader(str(p))
-        except Exception as exc:  # a flip in the session metadata itself may make it unrecognisable
-            assert "perfcap session" in str(exc) or "not a session" in str(exc)
-            continue
-        assert len(r.samples("a/imu")) <= n_ref if "a/imu" in r.streams else True
+        r = SessionReader(str(p))   # never lost: definitions survive in the summary and their copies
+        assert "a/imu" in r.streams and len(r.samples("a/imu")) <= n_ref
 
 
 def test_text_and_empty_files_are_not_mcap(tmp_path, capsys):
