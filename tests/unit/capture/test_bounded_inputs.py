@@ -171,8 +171,10 @@ def test_damaged_real_calibration_documents_load_or_are_config_errors(data):
 
 # -- perfcap cycle CSV inputs -------------------------------------------------------------------------------
 def test_csv_inputs_beyond_the_bounds_are_config_errors(tmp_path):
+    from tests.unit.devices.test_trace_bounds import char_device
+
     with pytest.raises(ConfigError, match="not a regular file"):
-        read_cycle_input("/dev/zero", None, None)
+        read_cycle_input(char_device(), None, None)
     os.mkfifo(tmp_path / "fifo.csv")
     with pytest.raises(ConfigError, match="not a regular file"):
         read_cycle_input(str(tmp_path / "fifo.csv"), None, None)   # stat, not open: a FIFO blocks
