@@ -370,8 +370,8 @@ class PendingSession:
         if not replaceable:
             raise SessionExistsError(f"{self.path} exists and is {what}", path=self.path)
         if not self.overwrite:
-            raise SessionExistsError(f"{self.path} already exists ({what}; use --overwrite, or"
-                                     ' "overwrite": true, to replace it)', path=self.path)
+            raise SessionExistsError(f"{self.path} already exists (use --overwrite to replace it; it is {what})",
+                                     path=self.path)
 
     def publish(self) -> None:
         """Put the file (its header on disk) in place under its name.
