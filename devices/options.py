@@ -6,14 +6,16 @@ checked here, and an unknown key or a bad value raises ``ConfigError`` that show
 
 from __future__ import annotations
 
+import argparse
 import math
+import reprlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from capture.errors import ConfigError
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
+    from collections.abc import Callable, Mapping
 
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
@@ -29,6 +31,7 @@ class Option:
     choices: tuple[str, ...] | None = None
     min: float | None = None
     max: float | None = None
+    min_exclusive: bool = False   # the value must be above ``min``, not equal to it
 
     def form(self) -> str:
         if self.choices:
@@ -39,8 +42,11 @@ class Option:
         """``value`` as this option's type, checked against its choices and range: the one value parser of
         device options, transport options and settings.
 
+        Numbers are finite (``nan``, ``inf`` and ``1e999`` are refused); text holds no NUL character and
+        nothing that is not Unicode (an undecodable byte, as ``os.fsdecode`` hands it over).
+
         Raises:
-            BadValueError: with ``.problem`` ``"type"``, ``"choice"`` or ``"range"``.
+            BadValueError: with ``.problem`` ``"type"``, ``"choice"``, ``"range"`` or ``"text"``.
         """
         try:
             if self.type is bool:
@@ -64,21 +70,32 @@ class Option:
                     raise ValueError
             else:
                 v = str(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, RecursionError):   # RecursionError: str() of a deeply nested value
             raise BadValueError("type") from None
+        if isinstance(v, str) and not _is_text(v):
+            raise BadValueError("text")
         if self.choices and v not in self.choices:
             raise BadValueError("choice")
-        if (self.min is not None and v < self.min) or (self.max is not None and v > self.max):
+        if self.min is not None and (v <= self.min if self.min_exclusive else v < self.min):
+            raise BadValueError("range")
+        if self.max is not None and v > self.max:
             raise BadValueError("range")
         return v
 
     def range_text(self) -> str:
-        """The bounds in words (``within [1, 5]``, ``at least 0``); ``any value`` for an option without any."""
+        """The bounds in words (``within [1, 5]``, ``at least 0``, ``above 0``); ``any value`` for an option
+        without any."""
         if self.min is not None and self.max is not None:
-            return f"within [{self.min:g}, {self.max:g}]"
+            return f"within {'(' if self.min_exclusive else '['}{self.min:g}, {self.max:g}]"
         if self.min is not None:
-            return f"at least {self.min:g}"
+            return f"{'above' if self.min_exclusive else 'at least'} {self.min:g}"
         return f"at most {self.max:g}" if self.max is not None else "any value"
+
+    def problem_text(self, problem: str) -> str:
+        """What a value with ``problem`` (a ``BadValueError``'s) should have been, as the end of a sentence."""
+        return {"type": f"is not {self.form()}", "choice": f"must be one of {self.form()}",
+                "range": f"must be {self.range_text()}",
+                "text": "must be text without NUL characters or undecodable bytes"}[problem]
 
     def coerce(self, key: str, value: Any, where: str) -> Any:
         """:meth:`parse`, with a bad value said as a URL or device option (``rate='x' is not NUMBER``).
@@ -89,13 +106,49 @@ class Option:
         try:
             return self.parse(value)
         except BadValueError as exc:
-            what = {"type": f"is not {self.form()}", "choice": f"must be one of {self.form()}",
-                    "range": f"must be {self.range_text()}"}[exc.problem]
-            raise ConfigError(f"{where}: option {key}={value!r} {what}", source=where) from None
+            raise ConfigError(f"{where}: option {key}={shown(value)} {self.problem_text(exc.problem)}",
+                              source=where) from None
+
+
+def _is_text(s: str) -> bool:
+    if "\x00" in s:
+        return False
+    try:
+        s.encode("utf-8")
+    except UnicodeEncodeError:   # lone surrogates: bytes that were not UTF-8
+        return False
+    return True
+
+
+_SHOWN = reprlib.Repr()
+_SHOWN.maxstring = 60
+_SHOWN.maxother = 60
+_SHOWN.maxlevel = 3
+_SHOWN.maxlist = _SHOWN.maxtuple = _SHOWN.maxdict = 4
+
+
+def shown(value: Any) -> str:
+    """``repr(value)`` cut short, so a message stays one readable line whatever the value (a 5,000-digit
+    number, a list nested 900 deep)."""
+    return _SHOWN.repr(value)
+
+
+def arg_type(opt: Option) -> Callable[[str], Any]:
+    """An argparse ``type=`` that parses a flag's text with ``opt``, the one value parser: a bad value is
+    argparse's one-line usage error (``argument --duration: 'nan' is not NUMBER (finite)``)."""
+
+    def parse(text: str) -> Any:
+        try:
+            return opt.parse(text.strip())
+        except BadValueError as exc:
+            raise argparse.ArgumentTypeError(f"{shown(text)} {opt.problem_text(exc.problem)}") from None
+
+    parse.__name__ = opt.form()
+    return parse
 
 
 class BadValueError(ValueError):
-    """A value an ``Option`` does not take; ``problem`` is ``"type"``, ``"choice"`` or ``"range"``."""
+    """A value an ``Option`` does not take; ``problem`` is ``"type"``, ``"choice"``, ``"range"`` or ``"text"``."""
 
     def __init__(self, problem: str) -> None:
         super().__init__(problem)

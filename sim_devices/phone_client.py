@@ -14,7 +14,6 @@ started and, at the end, what it sent (``perfcap demo`` runs it so).
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import json
@@ -27,10 +26,12 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 from capture.clock import MONOTONIC, Clock
+from sim_devices.cli_args import SECONDS, SEED, SimParser, number
 from sim_devices.motion import PHONE_MOTIONS, phone_motion
 from sim_devices.phone_sim import page_hello, page_messages, page_pong
 
 if TYPE_CHECKING:
+    import argparse
     from collections.abc import Sequence
 
     from sim_devices.phone_sim import PageMessage
@@ -274,16 +275,17 @@ def send_udp(host: str, port: int, datagrams: Sequence[bytes], source: str = "12
     return len(datagrams)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="perfcap sim phone",
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of ``perfcap sim phone``."""
+    p = SimParser(prog="perfcap sim phone",
                                 description="a simulated phone running perfcap's page, streaming to perfcap serve")
     p.add_argument("--url", required=True, help="wss://HOST:PORT/ws/phone (as printed by perfcap serve)")
     p.add_argument("--token", help=f"the pairing token printed by perfcap serve (default: ${TOKEN_ENV})")
     p.add_argument("--fingerprint", help="the certificate fingerprint printed by perfcap serve (pinned)")
     p.add_argument("--id", default="sim-phone", help="the phone's id")
-    p.add_argument("--rate", type=float, default=60.0, help="devicemotion rate, Hz")
-    p.add_argument("--duration", type=float, default=30.0, help="seconds")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--rate", type=number(0, 1000, above=True), default=60.0, help="devicemotion rate, Hz")
+    p.add_argument("--duration", type=SECONDS, default=30.0, help="seconds")
+    p.add_argument("--seed", type=SEED, default=1)
     p.add_argument("--motion", choices=PHONE_MOTIONS, default="waving",
                    help="waving: seeded free waving; puppeteer: a choreography for perfcap puppet (walk, run, "
                         "hop, crouch)")
@@ -291,6 +293,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="JSON lines on stdout: once paired, when the page clock started (t0_host_ns on the host's"
                         " monotonic clock, t0_ms on the page's), then at the end what was sent; SIGTERM stops it"
                         " cleanly")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = build_parser()
     a = p.parse_args(argv)
     token = a.token if a.token is not None else os.environ.get(TOKEN_ENV)
     if not token:

@@ -24,9 +24,9 @@ counted in ``overrun_bytes``, never blocked on.
 
 from __future__ import annotations
 
-import argparse
 import errno
 import logging
+import math
 import os
 import queue
 import select
@@ -41,9 +41,11 @@ import numpy as np
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import CaptureError, ConfigError
+from sim_devices.cli_args import SECONDS, SECONDS_OR_ZERO, SEED, SimParser, number, whole
 from sim_devices.frames import ENCODERS, FrameSource, SessionSource, WavingSource
 
 if TYPE_CHECKING:
+    import argparse
     from collections.abc import Callable, Sequence
 
 log = logging.getLogger(__name__)
@@ -386,32 +388,51 @@ class PtySerialDevice:
         flush(clock.now_ns(), True)
 
 
-def _parse(argv: Sequence[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="perfcap sim serial",
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of ``perfcap sim serial``."""
+    p = SimParser(prog="perfcap sim serial",
                                 description="Serve a simulated serial IMU on a pty; open the printed path with"
                                             " perfcap record -d KIND@serial://PATH (or any serial program).")
-    p.add_argument("--kind", default="witmotion", help=f"device to simulate: {', '.join(sorted(ENCODERS))}")
-    p.add_argument("--rate", type=float, default=200.0, help="readings per second (default 200)")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--kind", default="witmotion", choices=sorted(ENCODERS),
+                   help=f"device to simulate: {', '.join(sorted(ENCODERS))}")
+    p.add_argument("--rate", type=number(0, 5000, above=True), default=200.0,
+                   help="readings per second (default 200)")
+    p.add_argument("--seed", type=SEED, default=1)
     p.add_argument("--no-device-clock", action="store_true", help="do not send device time stamps")
     p.add_argument("--still", action="store_true", help="the device lies still (for perfcap calibrate)")
-    p.add_argument("--heading", type=float, default=None, metavar="DEG",
+    p.add_argument("--heading", type=number(-360, 360), default=None, metavar="DEG",
                    help="witmotion: also send a magnetometer; a --still device faces this heading")
     p.add_argument("--gyro-bias", default="0,0,0", metavar="X,Y,Z", help="gyro offset the sensor adds, deg/s")
-    p.add_argument("--gyro-noise", type=float, default=0.0, metavar="DPS", help="gyro white noise, deg/s")
+    p.add_argument("--gyro-noise", type=number(0, 1e4), default=0.0, metavar="DPS", help="gyro white noise, deg/s")
     p.add_argument("--session", help="play a recorded session's raw bytes instead of synthetic motion")
     p.add_argument("--device", help="which device of --session")
     p.add_argument("--loop", action="store_true", help="loop --session")
     p.add_argument("--link", help="path of the port symlink (default: a temporary directory)")
-    p.add_argument("--burst-ms", type=float, default=0.0, help="FTDI-style batching every this many ms")
-    p.add_argument("--burst-bytes", type=int, default=62)
-    p.add_argument("--garbage", type=float, default=0.0, help="probability of garbage before a reading")
-    p.add_argument("--unplug-every", type=float, default=0.0, help="unplug every this many seconds")
-    p.add_argument("--unplug-for", type=float, default=1.0, help="... for this long")
-    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
+    p.add_argument("--burst-ms", type=number(0, 1e4), default=0.0, help="FTDI-style batching every this many ms")
+    p.add_argument("--burst-bytes", type=whole(1, 1 << 20), default=62)
+    p.add_argument("--garbage", type=number(0, 1), default=0.0, help="probability of garbage before a reading")
+    p.add_argument("--unplug-every", type=SECONDS_OR_ZERO, default=0.0, help="unplug every this many seconds")
+    p.add_argument("--unplug-for", type=SECONDS, default=1.0, help="... for this long")
+    p.add_argument("--duration", type=SECONDS_OR_ZERO, default=0.0,
+                   help="stop after this many seconds (0 = until Ctrl-C)")
     p.add_argument("--sent-log", metavar="FILE.npy", help="at the end, save (reading index, host write time ns)"
                    " of every reading sent, for latency and loss checks")
-    return p.parse_args(list(argv))
+    return p
+
+
+def _check_writable(path: str) -> None:
+    """``--sent-log`` can be written at the end: its folder exists and it is no folder, FIFO or device.
+
+    Raises:
+        ConfigError: saying why not.
+    """
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ConfigError(f"--sent-log {path}: the folder {folder} does not exist")
+    if os.path.lexists(path) and not os.path.isfile(path):
+        raise ConfigError(f"--sent-log {path} exists and is not a file")
+    if not os.access(folder, os.W_OK):
+        raise ConfigError(f"--sent-log {path}: the folder {folder} is not writable")
 
 
 COMMANDS = "unplug | replug | garbage N | drop N | stall SECONDS | burst MS | quit"
@@ -423,9 +444,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     Fault commands are read from stdin, one per line: ``unplug``, ``replug``, ``garbage N``,
     ``drop N``, ``stall SECONDS``, ``burst MS``, ``quit``.
     """
-    args = _parse(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
         if args.session:
+            if os.path.exists(args.session) and not (os.path.isfile(args.session) or os.path.isdir(args.session)):
+                raise ConfigError(f"--session {args.session} is not a file (a FIFO or a device)")
             src: FrameSource = SessionSource(args.session, args.device, loop=args.loop)
         else:
             if args.rate <= 0 or args.rate > 5000:
@@ -434,16 +457,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                 bias = tuple(float(x) for x in args.gyro_bias.split(","))
             except ValueError:
                 bias = ()
-            if len(bias) != 3:
-                raise ConfigError(f"--gyro-bias {args.gyro_bias!r}: expected X,Y,Z in deg/s")
+            if len(bias) != 3 or not all(math.isfinite(b) and abs(b) <= 1e4 for b in bias):
+                raise ConfigError(f"--gyro-bias {args.gyro_bias!r}: expected X,Y,Z in deg/s (finite, at most 1e4)")
             src = WavingSource(args.kind, args.rate, args.seed, device_clock=not args.no_device_clock,
                                amplitude_deg=0.0 if args.still else 40.0, gyro_bias_dps=bias,
                                gyro_noise_dps=args.gyro_noise, heading_deg=args.heading)
+        if args.sent_log:
+            _check_writable(args.sent_log)
         sim = PtySerialDevice(src, args.link, burst_ms=args.burst_ms, burst_bytes=args.burst_bytes,
                               garbage=args.garbage, unplug_every=args.unplug_every, unplug_for=args.unplug_for,
                               seed=args.seed)
     except (CaptureError, OSError) as exc:
-        print(f"perfcap sim serial: {exc}", file=sys.stderr)
+        print(f"perfcap: error: sim serial: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     sim.start()
     print(sim.path, flush=True)
@@ -488,7 +513,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         sim.stop()
     if args.sent_log:
-        np.save(args.sent_log, np.array(sim.sent, np.int64).reshape(-1, 2))
+        try:
+            np.save(args.sent_log, np.array(sim.sent, np.int64).reshape(-1, 2))
+        except OSError as exc:
+            print(f"perfcap sim serial: cannot write --sent-log {args.sent_log}: {exc.strerror or exc}",
+                  file=sys.stderr)
+            return 1
     s = sim.stats
     print(f"# sent {s.readings_sent} readings ({s.bytes_sent} bytes); {s.lost_unplugged} while unplugged;"
           f" {s.unplugs} unplugs; {s.overrun_bytes} bytes not taken by a reader", file=sys.stderr)

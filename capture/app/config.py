@@ -46,7 +46,10 @@ A config file looks like::
 
 from __future__ import annotations
 
+import difflib
 import os
+import re
+import stat
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -56,11 +59,21 @@ from typing import TYPE_CHECKING, Any
 from capture.app.schema import parse_value, setting, setting_fields
 from capture.app.serve.config import ServeConfig
 from capture.errors import ConfigError
+from devices.options import shown
 
 if TYPE_CHECKING:
     from devices import DeviceSpec, ReconnectPolicy
 
 PROFILE_DIR = Path(__file__).resolve().parents[2] / "config"
+#: the largest config file read (a rig's file is a few KiB; a larger one is a mistake, not a config)
+MAX_CONFIG_BYTES = 1 << 20
+#: ``PERFCAP_*`` variables that are not settings, and what reads them
+OTHER_VARIABLES = {"PERFCAP_SIM_TOKEN": "the pairing token of perfcap sim phone"}
+#: a key of more parts than this (``a.b.c...``): tomllib's time grows with the square of the parts
+MAX_KEY_PARTS = 64
+_LONG_KEY_RE = re.compile(r"""(?:^|[{,\[])[ \t]*(?:(?:[\w-]+|"[^"\n]*"|'[^'\n]*')[ \t]*\.[ \t]*){"""
+                          + str(MAX_KEY_PARTS) + "}", re.MULTILINE)   # where keys start: a line, [, { or ,
+_PROFILE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_\-]{0,63}$")
 
 
 @dataclass
@@ -179,8 +192,21 @@ def _devices(where: str, data: Any) -> list[DeviceSpec]:
 def _load_file(path: Path, settings: Settings) -> None:
     where = str(path)
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
+        with open(path, "rb", opener=_open_nonblocking) as f:
+            st = os.fstat(f.fileno())
+            if stat.S_ISDIR(st.st_mode):
+                raise IsADirectoryError
+            if not stat.S_ISREG(st.st_mode):
+                raise ConfigError(f"{where}: not a regular file (a FIFO or a device), not a config file",
+                                  source=where)
+            raw = f.read(MAX_CONFIG_BYTES + 1)
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{where}: larger than {MAX_CONFIG_BYTES >> 20} MiB, not a config file", source=where)
+        text = raw.decode("utf-8")
+        if _LONG_KEY_RE.search(text):
+            raise ConfigError(f"{where}: not a config file: a key of more than {MAX_KEY_PARTS} dotted parts",
+                              source=where)
+        data = tomllib.loads(text)
     except FileNotFoundError:
         raise ConfigError(f"{where}: no such config file", source=where) from None
     except IsADirectoryError:
@@ -191,6 +217,10 @@ def _load_file(path: Path, settings: Settings) -> None:
         raise ConfigError(f"{where}: not valid TOML: {exc}", source=where) from None
     except UnicodeDecodeError:
         raise ConfigError(f"{where}: not valid TOML: not UTF-8 text", source=where) from None
+    except RecursionError:   # tomllib recurses per nesting level of arrays and inline tables
+        raise ConfigError(f"{where}: not a config file: its values are nested too deeply", source=where) from None
+    except ValueError as exc:  # tomllib's own limits, e.g. an integer of more than 4300 digits
+        raise ConfigError(f"{where}: not valid TOML: {exc}", source=where) from None
     for k, v in data.items():
         if k in SECTIONS:
             _apply_section(where, k, getattr(settings, k), v)
@@ -202,6 +232,37 @@ def _load_file(path: Path, settings: Settings) -> None:
     settings.sources.append(where)
 
 
+def _open_nonblocking(path: str, flags: int) -> int:
+    """Open without waiting for a writer, should ``path`` be a FIFO (it is then refused, not read)."""
+    return os.open(path, flags | os.O_NONBLOCK)
+
+
+def _check_environment(env: Mapping[str, str]) -> None:
+    """Every ``PERFCAP_*`` variable names a setting (or one of :data:`OTHER_VARIABLES`) and holds text.
+    A misspelt variable is an error rather than a setting silently not applied, as an unknown key of a
+    config file is.
+
+    Raises:
+        ConfigError: naming the variable and, for a misspelling, the variable meant.
+    """
+    known = [f"PERFCAP_{sec.upper()}_{k.upper()}" for sec in SECTIONS for k in _keys(sec)] + list(OTHER_VARIABLES)
+    for k, v in env.items():
+        if not k.startswith("PERFCAP_"):
+            continue
+        try:
+            v.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ConfigError(f"environment: {k} is not UTF-8 text", source=k) from None
+        if k in known:
+            continue
+        close = difflib.get_close_matches(k, known, n=1, cutoff=0.75)
+        sec = k[len("PERFCAP_"):].lower().partition("_")[0]
+        hint = (f"did you mean {close[0]}?" if close else
+                f"[{sec}] takes: {', '.join(_keys(sec))}" if sec in SECTIONS else
+                f"the settings are PERFCAP_<SECTION>_<KEY> with a section of {', '.join(SECTIONS)}")
+        raise ConfigError(f"environment: {k} is not a setting; {hint}", source=k)
+
+
 def load_config(path: str | os.PathLike[str] | None = None, profile: str | None = None,
                 overrides: Mapping[str, Mapping[str, Any]] | None = None,
                 env: Mapping[str, str] | None = None) -> Settings:
@@ -211,24 +272,23 @@ def load_config(path: str | os.PathLike[str] | None = None, profile: str | None 
         ConfigError: unreadable file, bad TOML, unknown key or wrong type.
     """
     s = Settings()
+    env = os.environ if env is None else env
+    _check_environment(env)
     if profile:
         p = PROFILE_DIR / f"{profile}.toml"
-        if not p.is_file():
+        if not _PROFILE_RE.match(profile) or not p.is_file():
             have = sorted(x.stem for x in PROFILE_DIR.glob("*.toml")) if PROFILE_DIR.is_dir() else []
-            raise ConfigError(f"unknown profile {profile!r}; available: {', '.join(have) or 'none'}", source=profile)
+            raise ConfigError(f"unknown profile {shown(profile)}; available: {', '.join(have) or 'none'}",
+                              source=profile)
         _load_file(p, s)
     if path is not None:
         _load_file(Path(path), s)
-    env = os.environ if env is None else env
     for k, v in env.items():
         if not k.startswith("PERFCAP_"):
             continue
         rest = k[len("PERFCAP_"):].lower()
         sec, _, key = rest.partition("_")
         if sec in SECTIONS:
-            if key not in _keys(sec):
-                raise ConfigError(f"environment: {k} is not a setting; [{sec}] takes: {', '.join(_keys(sec))}",
-                                  source=k)
             _apply_section(f"environment {k}", sec, getattr(s, sec), {key: v}, from_text=True)
     for sec, vals in (overrides or {}).items():
         if sec not in SECTIONS:

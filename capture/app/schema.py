@@ -13,7 +13,7 @@ from dataclasses import Field, field, fields
 from typing import TYPE_CHECKING, Any
 
 from capture.errors import ConfigError
-from devices.options import BadValueError, Option
+from devices.options import BadValueError, Option, shown
 
 if TYPE_CHECKING:
     import argparse
@@ -64,14 +64,14 @@ def parse_value(opt: Option, key: str, value: Any, where: str, *, from_text: boo
               isinstance(value, int | float) and not isinstance(value, bool) if typ is float else
               isinstance(value, typ))
         if not ok:
-            raise ConfigError(f"{where}: {key} = {value!r} must be {_TYPE_NAMES[typ]}", source=where)
+            raise ConfigError(f"{where}: {key} = {shown(value)} must be {_TYPE_NAMES[typ]}", source=where)
     try:
         return opt.parse(value)
     except BadValueError as exc:
         what = {"type": f"must be {_TYPE_NAMES.get(opt.type, opt.form())}",
-                "choice": f"must be one of {', '.join(opt.choices or ())}",
-                "range": f"must be {opt.range_text()}"}[exc.problem]
-        raise ConfigError(f"{where}: {key} = {value!r} {what}", source=where) from None
+                "choice": f"must be one of {', '.join(opt.choices or ())}"}.get(exc.problem)
+        raise ConfigError(f"{where}: {key} = {shown(value)} {what or opt.problem_text(exc.problem)}",
+                          source=where) from None
 
 
 # -- flags --------------------------------------------------------------------------------------------

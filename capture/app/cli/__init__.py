@@ -9,7 +9,9 @@ Errors are one line on stderr and a non-zero exit (2 for bad input, 1 for a fail
 
 from __future__ import annotations
 
+import io
 import logging
+import os
 import sys
 from typing import TYPE_CHECKING
 
@@ -57,7 +59,35 @@ def _live(args: argparse.Namespace) -> bool:
     return (args.command == "puppet" and bool(args.phone)) or (args.command == "replay" and not args.fast)
 
 
+def _undecodable(argv: Sequence[str]) -> str | None:
+    """The first argument holding bytes that are not UTF-8 (``os.fsdecode`` hands them over as lone
+    surrogates), shown with those bytes escaped; None when every argument is text."""
+    for a in argv:
+        try:
+            a.encode("utf-8")
+        except UnicodeEncodeError:
+            return os.fsencode(a).decode("utf-8", "backslashreplace")
+    return None
+
+
+def _tolerant_output() -> None:
+    """Output that cannot fail on text the terminal's encoding lacks (a device name in a session, a file
+    name listed from a folder): such characters are written escaped, never raised as an error."""
+    for stream in (sys.stdout, sys.stderr):
+        if isinstance(stream, io.TextIOWrapper) and stream.errors == "strict":
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    _tolerant_output()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    bad = _undecodable(argv)
+    if bad is not None:
+        # a file name or value that is not UTF-8 could not be recorded in a session, shown or sent on:
+        # refused where it enters, as every other bad input
+        print(f"perfcap: error: the argument {bad!r} is not UTF-8 text (perfcap takes UTF-8 file names and"
+              " values; rename the file)", file=sys.stderr)
+        return EXIT_BAD_INPUT
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG

@@ -8,7 +8,7 @@ import json
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from capture.app.cli.common import check_duration, err, out, settings, stop_on_signals
+from capture.app.cli.common import SECONDS, check_duration, count, err, folder_arg, out, settings, stop_on_signals
 from capture.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -24,12 +24,12 @@ def add_parser(sub: Subcommands) -> None:
     c.add_argument("-d", "--device", metavar="DEVICE", help=f"the device, as for record ({SPEC_FORM})")
     c.add_argument("--gyro", action="store_true", help="gyro bias from an explicit still period")
     c.add_argument("--accel", action="store_true", help="accelerometer offset and scale from still poses")
-    c.add_argument("--poses", type=int, default=6, help="orientations asked for by --accel (default 6)")
+    c.add_argument("--poses", type=count(1, 100), default=6, help="orientations asked for by --accel (default 6)")
     c.add_argument("--mag", action="store_true", help="magnetometer hard and soft iron from a rotation dance")
     c.add_argument("--mounting", action="store_true", help="mounting rotation from a still reference pose")
     c.add_argument("--yaw", action="store_true",
                    help="yaw reset: the heading held still now becomes zero (needs a magnetometer)")
-    c.add_argument("--seconds", type=float, default=5.0, help="how long to read for each step (default 5)")
+    c.add_argument("--seconds", type=SECONDS, default=5.0, help="how long to read for each step (default 5)")
     c.add_argument("--show", action="store_true", help="print the stored calibration")
     c.add_argument("--clear", action="store_true", help="remove the stored calibration")
     c.add_argument("--list", action="store_true", help="list stored calibrations")
@@ -47,7 +47,9 @@ def run(args: argparse.Namespace) -> int:
     from capture.calibration_store import CalibrationStore
     from devices import open_device, parse_device_spec
 
+    folder_arg(args.calibration_dir, "--calibration-dir")
     s = settings(args)
+    folder_arg(s.calibration.dir, "calibration dir")
     store = CalibrationStore(s.calibration.dir or None)
     if args.list:
         entries = store.entries()

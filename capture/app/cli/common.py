@@ -10,15 +10,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
+import stat
 import sys
 import threading
 from typing import TYPE_CHECKING, Any, NoReturn
 
 from capture.clock import MONOTONIC
 from capture.errors import ConfigError
+from devices.options import Option, arg_type, shown
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
     from types import FrameType
 
     from capture.app.config import Settings
@@ -117,6 +121,57 @@ def settings(args: argparse.Namespace, serve: dict[str, Any] | None = None) -> S
     return load_config(given.get("config"), given.get("profile"), overrides)
 
 
+def input_file(path: str | None, what: str) -> None:
+    """Refuse, before anything opens it, an input that is there but is no regular file: a FIFO or a
+    device would block the read or never end (``/dev/zero``). A missing file or a folder is left to the
+    reader, which says so in its own words.
+
+    Raises:
+        ConfigError: ``path`` is a FIFO, a device or a socket, or cannot be looked at.
+    """
+    if not path:
+        return
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ConfigError(f"{what} {shown(path)}: {exc.strerror or exc}") from None
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        kind = ("a FIFO" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
+                else "a device")
+        raise ConfigError(f"{what} {path} is {kind}, not a file")
+
+
+def output_file(path: str | None, what: str) -> None:
+    """Refuse an output that is there but is no regular file or folder (writing to a FIFO blocks until
+    someone reads it; to a device, it is no file).
+
+    Raises:
+        ConfigError: as :func:`input_file`.
+    """
+    input_file(path, what)
+
+
+def folder_arg(path: str | None, what: str) -> None:
+    """Refuse a folder flag that names something else than a folder, or a name the system cannot take
+    (too long, through a file). A folder not there yet is left to be made.
+
+    Raises:
+        ConfigError: saying why.
+    """
+    if not path:
+        return
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ConfigError(f"{what} {shown(path)}: {exc.strerror or exc}") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"{what} {path} is not a folder")
+
+
 def check_duration(d: float | None) -> None:
     if d is not None and (not math.isfinite(d) or d <= 0):
         raise ConfigError(f"--duration must be a positive number of seconds, not {d}")
@@ -175,12 +230,26 @@ def print_capture(report: CaptureReport, as_json: bool) -> int:
 
 
 class Parser(argparse.ArgumentParser):
-    """Usage errors are the usage and one line, exit 2."""
+    """A usage error is one line naming the command's ``--help``, exit 2."""
 
     def error(self, message: str) -> NoReturn:
-        self.print_usage(sys.stderr)
-        print(f"perfcap: error: {message}", file=sys.stderr)
+        print(f"perfcap: error: {' '.join(message.split())} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
+
+
+#: the longest time a flag takes (about 31 years): beyond it, timers and waits overflow
+MAX_SECONDS = 1e9
+#: ``type=`` of a flag in seconds above 0 (``--duration``), through the one value parser (``Option.parse``)
+SECONDS = arg_type(Option(float, None, "seconds", min=0, max=MAX_SECONDS, min_exclusive=True))
+#: ``type=`` of a flag in seconds, 0 included (``--status-every 0``: none)
+SECONDS_OR_ZERO = arg_type(Option(float, None, "seconds", min=0, max=MAX_SECONDS))
+#: ``type=`` of a seed (numpy takes non-negative seeds)
+SEED = arg_type(Option(int, 0, "seed", min=0, max=2**128))
+
+
+def count(lo: int, hi: int) -> Callable[[str], Any]:
+    """``type=`` of a whole number flag within ``[lo, hi]``."""
+    return arg_type(Option(int, None, "count", min=lo, max=hi))
 
 
 def orientation_args(p: argparse.ArgumentParser, help_on: str) -> None:

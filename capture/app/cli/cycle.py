@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import EXIT_NO_CYCLE, err, out
+from capture.app.cli.common import EXIT_NO_CYCLE, SEED, err, input_file, out, output_file
 from capture.errors import ConfigError, CycleError
 
 if TYPE_CHECKING:
@@ -28,13 +28,16 @@ def add_parser(sub: Subcommands) -> None:
     cy.add_argument("-o", "--output", metavar="LOOP.csv", help="write the loop as CSV (t, then the channels)")
     cy.add_argument("--report", metavar="REPORT.png", help="draw the aligned input loops and the cycle per channel")
     cy.add_argument("--json", action="store_true", help="one JSON object")
-    cy.add_argument("--seed", type=int, default=0, help="seed of the extraction's random choices (default 0)")
+    cy.add_argument("--seed", type=SEED, default=0, help="seed of the extraction's random choices (default 0)")
     cy.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from capture.app.cycle_input import extract_cycle, read_cycle_input, split_columns, write_cycle_report
 
+    input_file(args.input, "INPUT")
+    output_file(args.output, "-o")
+    output_file(args.report, "--report")
     columns = split_columns(args.columns)
     inp = read_cycle_input(args.input, args.stream, columns)
     if len(inp.t) < 2:

@@ -10,9 +10,11 @@ from typing import TYPE_CHECKING
 from capture import __version__
 from capture.app.cli.common import (
     EXIT_CHECK_FAILED,
+    SECONDS,
     check_duration,
     live_line,
     out,
+    output_file,
     print_capture,
     seconds_since,
     stop_on_signals,
@@ -28,7 +30,7 @@ if TYPE_CHECKING:
 
 def add_parser(sub: Subcommands) -> None:
     d = sub.add_parser("demo", help="hardware-free demo: simulated devices -> bus -> session -> replay")
-    d.add_argument("--duration", type=float, default=5.0, metavar="SECONDS")
+    d.add_argument("--duration", type=SECONDS, default=5.0, metavar="SECONDS")
     d.add_argument("-o", "--output", metavar="SESSION.mcap", help="where to keep the demo session")
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true")
@@ -42,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from capture.summary import summarize
 
     check_duration(args.duration)
+    output_file(args.output, "-o")
     path = args.output or os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-"), "demo.mcap")
     devices = list(demo.DEMO_DEVICES)
     stop = stop_on_signals()

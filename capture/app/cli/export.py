@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import EXIT_CHECK_FAILED, Progress, err, out
+from capture.app.cli.common import EXIT_CHECK_FAILED, Progress, err, input_file, out, output_file
 
 if TYPE_CHECKING:
     import argparse
@@ -26,6 +26,8 @@ def run(args: argparse.Namespace) -> int:
     from capture.app.export import export_session
     from capture.session import SessionReader
 
+    input_file(args.session, "SESSION")
+    output_file(args.output, "-o")
     prog = Progress("reading", args.quiet)
     reader = SessionReader(args.session, progress=prog)
     prog.done()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from typing import TYPE_CHECKING
 
-from capture.app.cli.common import Progress, out
+from capture.app.cli.common import Progress, input_file, out
 
 if TYPE_CHECKING:
     import argparse
@@ -24,6 +24,7 @@ def run(args: argparse.Namespace) -> int:
     from capture.session import SessionReader
     from capture.summary import summarize
 
+    input_file(args.session, "SESSION")
     prog = Progress("reading", args.json)
     reader = SessionReader(args.session, progress=prog)
     prog.done()

@@ -9,10 +9,13 @@ from typing import TYPE_CHECKING
 from capture.app.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_CHECK_FAILED,
+    SECONDS,
     check_duration,
     err,
+    input_file,
     live_line,
     out,
+    output_file,
     stop_on_signals,
 )
 from capture.errors import ConfigError
@@ -47,7 +50,7 @@ def add_parser(sub: Subcommands) -> None:
     pp.add_argument("--timeline", metavar="TIMELINE.json", help='write the state changes as [{"t": s, "state":'
                     ' name}, ...]')
     pp.add_argument("--rate", type=float, default=60.0, metavar="HZ", help="frame rate (default 60)")
-    pp.add_argument("--duration", type=float, metavar="SECONDS", help="with --phone: stop after this long"
+    pp.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="with --phone: stop after this long"
                     " (default: Ctrl-C)")
     pp.add_argument("--hold", action="store_true", help="the phone counts as held throughout (touches ignored)")
     pp.add_argument("-q", "--quiet", action="store_true", help="no live status lines")
@@ -59,6 +62,9 @@ def run(args: argparse.Namespace) -> int:
     from capture.app.puppet_input import check_rate, read_trajectory, session_track
     from capture.app.puppet_run import PuppetRun, VmcSender, parse_host_port
 
+    if not ((args.phone or "").strip() or args.input or args.session):   # the one source given is empty
+        flag = "--phone" if args.phone is not None else "--input" if args.input is not None else "--session"
+        raise ConfigError(f"{flag} is empty: give a device, a trajectory CSV or a session")
     rate = check_rate(args.rate)
     if args.duration is not None:
         if not args.phone:
@@ -66,6 +72,10 @@ def run(args: argparse.Namespace) -> int:
         check_duration(args.duration)
     if args.device is not None and not args.session:
         raise ConfigError("--device chooses the phone of a --session")
+    input_file(args.input, "--input")
+    input_file(args.session, "--session")
+    output_file(args.output, "-o")
+    output_file(args.timeline, "--timeline")
     puppet_run.probe_writable(args.output, "-o")          # before the performance, not after it
     puppet_run.probe_writable(args.timeline, "--timeline")
     if args.vmc:

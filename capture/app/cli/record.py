@@ -6,10 +6,13 @@ import sys
 from typing import TYPE_CHECKING
 
 from capture.app.cli.common import (
+    SECONDS,
     check_duration,
     err,
+    folder_arg,
     live_line,
     orientation_args,
+    output_file,
     print_capture,
     settings,
     stop_on_signals,
@@ -30,7 +33,7 @@ def add_parser(sub: Subcommands) -> None:
                    help=f"a device: {SPEC_FORM}, e.g. {SPEC_EXAMPLE} (repeatable)")
     r.add_argument("--config", metavar="FILE", help="TOML settings (and [[devices]])")
     r.add_argument("--profile", metavar="NAME", help="a profile from config/ (default, lab, ci)")
-    r.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long (default: Ctrl-C)")
+    r.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="stop after this long (default: Ctrl-C)")
     r.add_argument("-o", "--output", required=True, metavar="SESSION.mcap")
     r.add_argument("--overwrite", action="store_true", help="replace an existing session file")
     r.add_argument("--max-loss", type=float, metavar="SECONDS", help="most data a crash may lose (default 1 s)")
@@ -48,6 +51,8 @@ def run(args: argparse.Namespace) -> int:
     from devices import parse_device_spec
 
     check_duration(args.duration)
+    output_file(args.output, "-o")
+    folder_arg(args.calibration_dir, "--calibration-dir")
     s = settings(args)
     specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
     if not specs:

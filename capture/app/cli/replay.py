@@ -8,16 +8,20 @@ from typing import TYPE_CHECKING
 
 from capture.app.cli.common import (
     EXIT_CHECK_FAILED,
+    SECONDS,
     check_duration,
     err,
+    input_file,
     live_line,
     orientation_args,
     out,
+    output_file,
     seconds_since,
     stop_on_signals,
 )
 from capture.clock import MONOTONIC
 from capture.errors import ConfigError
+from devices.options import Option, arg_type
 
 if TYPE_CHECKING:
     import argparse
@@ -25,14 +29,18 @@ if TYPE_CHECKING:
     from capture.app.cli.common import Subcommands
 
 
+#: ``--speed``: a factor above 0 (``--fast`` is as fast as possible)
+SPEED = arg_type(Option(float, 1.0, "speed factor", min=0, max=1e6, min_exclusive=True))
+
+
 def add_parser(sub: Subcommands) -> None:
     rp = sub.add_parser("replay", help="replay a session through the same codecs and check it")
     rp.add_argument("session", metavar="SESSION")
     g = rp.add_mutually_exclusive_group()
-    g.add_argument("--speed", type=float, metavar="X", help="speed factor (default 1 = recorded pace)")
+    g.add_argument("--speed", type=SPEED, metavar="X", help="speed factor (default 1 = recorded pace)")
     g.add_argument("--fast", action="store_true", help="as fast as possible (deterministic)")
     rp.add_argument("--loop", action="store_true", help="start over at the end")
-    rp.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long")
+    rp.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="stop after this long")
     rp.add_argument("-o", "--output", metavar="SESSION.mcap", help="record the replay to a new session")
     rp.add_argument("--overwrite", action="store_true")
     rp.add_argument("--no-verify", action="store_true", help="skip comparing with the recorded samples")
@@ -55,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         check_duration(args.duration)
     if args.loop and args.duration is None and args.fast:
         raise ConfigError("--loop with --fast never ends; add --duration SECONDS")
+    input_file(args.session, "SESSION")
+    output_file(args.output, "-o")
     stop = stop_on_signals()
     t0 = MONOTONIC.now_ns()
     rep = replay_session(args.session, speed=speed, loop=args.loop, verify=not args.no_verify, output=args.output,

@@ -4,6 +4,7 @@ and SensorServer; the control API; mDNS), its endpoints and pairing link printed
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 from pathlib import Path
@@ -12,6 +13,8 @@ from typing import TYPE_CHECKING, Any
 from capture import __version__
 from capture.app.cli.common import (
     EXIT_BAD_INPUT,
+    SECONDS,
+    SECONDS_OR_ZERO,
     check_duration,
     live_line,
     out,
@@ -22,6 +25,8 @@ from capture.app.cli.common import (
 from capture.app.schema import add_flags, flag_values
 from capture.app.serve.config import ServeConfig
 from capture.clock import MONOTONIC
+from capture.errors import ConfigError
+from devices.options import shown
 
 if TYPE_CHECKING:
     import argparse
@@ -40,8 +45,8 @@ def add_parser(sub: Subcommands) -> None:
     sv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     sv.add_argument("--rotate-token", action="store_true", help="make a new pairing token before starting")
     add_flags(sv, ServeConfig)  # one flag per [serve] setting (capture.app.serve.config)
-    sv.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long")
-    sv.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines (0: none)")
+    sv.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="stop after this long")
+    sv.add_argument("--status-every", type=SECONDS_OR_ZERO, default=5.0, help="seconds between status lines (0: none)")
     sv.add_argument("--config", metavar="FILE")
     sv.add_argument("--profile", metavar="NAME")
     sv.add_argument("-q", "--quiet", action="store_true")
@@ -64,6 +69,20 @@ def _print_qr(url: str) -> None:
         log.info("no QR code: %s", exc)
 
 
+def _check_host(flag: str, host: str) -> None:
+    """A listening or advertised host is an address or a host name (labels of at most 63 characters).
+
+    Raises:
+        ConfigError: naming the flag.
+    """
+    if not host:
+        return
+    try:
+        host.encode("idna")
+    except UnicodeError:
+        raise ConfigError(f"{flag} {shown(host)} is not a host name or an address") from None
+
+
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -73,6 +92,14 @@ def run(args: argparse.Namespace) -> int:
     check_duration(args.duration)
     s = settings(args, serve=flag_values(args, ServeConfig))
     cfg = s.serve
+    for flag, host in (("--host", cfg.host), ("--control-host", cfg.control_host), ("--public-host", cfg.public_host)):
+        _check_host(flag, host)
+    if not os.path.isdir(cfg.sessions_dir):
+        raise ConfigError(f"sessions_dir {cfg.sessions_dir} (--sessions-dir, [serve] sessions_dir or"
+                          " PERFCAP_SERVE_SESSIONS_DIR) is not a folder")
+    if cfg.state_dir and os.path.lexists(cfg.state_dir) and not os.path.isdir(cfg.state_dir):
+        raise ConfigError(f"state_dir {cfg.state_dir} (--state-dir, [serve] state_dir or PERFCAP_SERVE_STATE_DIR)"
+                          " is not a folder")
     specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
     if args.rotate_token:
         from capture.app.serve.security import TokenStore

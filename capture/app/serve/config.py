@@ -19,6 +19,10 @@ from capture.app.schema import parse_value, setting, setting_fields
 from capture.errors import ConfigError
 
 #: a host name or an address: what may go in URLs and the certificate
+#: the protocols whose phones ``phone_names`` can name (``capture.app.serve.service.PHONE_KINDS``)
+PHONE_PROTOCOLS = ("page", "sensorlogger", "osc", "hyperimu")
+#: a device name (``devices._NAME_RE``)
+_DEVICE_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 _PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
 
 
@@ -110,16 +114,28 @@ class ServeConfig:
         """``phone_names`` (``PROTOCOL/ID=NAME,...``) and ``names``, by ``PROTOCOL/ID``.
 
         Raises:
-            ConfigError: a phone name entry is malformed.
+            ConfigError: a phone name entry is malformed: not PROTOCOL/ID=NAME, an unknown protocol, a
+                name that is no device name, or a phone or a name given twice.
         """
         out: dict[str, str] = {}
         for item in (i.strip() for i in self.phone_names.split(",")):
             if not item:
                 continue
             key, sep, name = item.partition("=")
-            if not sep or "/" not in key or not name:
+            key, name = key.strip(), name.strip()
+            protocol, slash, remote = key.partition("/")
+            if not sep or not slash or not remote.strip() or not name:
                 raise ConfigError(f"phone name {item!r}: expected PROTOCOL/ID=NAME, e.g. page/5f2c0a=pocket")
-            out[key.strip()] = name.strip()
+            if protocol not in PHONE_PROTOCOLS:
+                raise ConfigError(f"phone name {item!r}: unknown protocol {protocol!r}; expected one of"
+                                  f" {', '.join(PHONE_PROTOCOLS)}")
+            if not _DEVICE_NAME_RE.match(name):
+                raise ConfigError(f"phone name {item!r}: the name must start with a letter and use letters, digits,"
+                                  " _ or - (at most 64)")
+            if key in out or name in out.values():
+                raise ConfigError(f"phone name {item!r}: {'that phone' if key in out else 'that name'} is named"
+                                  " twice")
+            out[key] = name
         out.update(self.names)
         return out
 
