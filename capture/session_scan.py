@@ -15,6 +15,7 @@ that each one consumed exactly its length, which is what lets a damaged one be t
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import mmap
@@ -40,6 +41,33 @@ TOTAL_FLOOR = 128 << 20
 _hdr = struct.Struct("<BQ")
 # a record header whose length fits in 5 bytes (under 1 TiB): where a resync may look
 _candidate = re.compile(rb"(?=[\x01-\x04\x06-\x0f][\s\S]{5}\x00\x00\x00)")
+
+
+@functools.cache
+def _readers() -> dict[int, Any]:
+    """mcap's reader of each record type, by opcode."""
+    from mcap.records import (
+        Attachment,
+        AttachmentIndex,
+        Channel,
+        Chunk,
+        ChunkIndex,
+        DataEnd,
+        Footer,
+        Header,
+        MessageIndex,
+        Metadata,
+        MetadataIndex,
+        Schema,
+        Statistics,
+        SummaryOffset,
+    )
+
+    return {
+        0x01: Header.read, 0x02: Footer.read, 0x03: Schema.read, 0x04: Channel.read, 0x06: Chunk.read,
+        0x07: MessageIndex.read, 0x08: ChunkIndex.read, 0x09: Attachment.read, 0x0A: AttachmentIndex.read,
+        0x0B: Statistics.read, 0x0C: Metadata.read, 0x0D: MetadataIndex.read, 0x0E: SummaryOffset.read,
+        0x0F: DataEnd.read}
 
 
 def chunk_budget(compressed: int) -> int:
@@ -148,29 +176,8 @@ class RecordScanner:
         """The record at ``pos`` parsed by mcap, or None when it does not parse exactly (damaged).
         A chunk comes back as the list of its records (decompressed within the budgets)."""
         from mcap.data_stream import ReadDataStream
-        from mcap.records import (
-            Attachment,
-            AttachmentIndex,
-            Channel,
-            Chunk,
-            ChunkIndex,
-            DataEnd,
-            Footer,
-            Header,
-            MessageIndex,
-            Metadata,
-            MetadataIndex,
-            Schema,
-            Statistics,
-            SummaryOffset,
-        )
 
-        readers: dict[int, Any] = {
-            0x01: Header.read, 0x02: Footer.read, 0x03: Schema.read, 0x04: Channel.read, 0x06: Chunk.read,
-            0x07: MessageIndex.read, 0x08: ChunkIndex.read, 0x09: Attachment.read, 0x0A: AttachmentIndex.read,
-            0x0B: Statistics.read, 0x0C: Metadata.read, 0x0D: MetadataIndex.read, 0x0E: SummaryOffset.read,
-            0x0F: DataEnd.read}
-        reader = readers.get(op)
+        reader = _readers().get(op)
         if reader is None:
             return None
         body = self.mm[pos + _hdr.size:pos + _hdr.size + length]
