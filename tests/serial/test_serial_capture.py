@@ -234,8 +234,10 @@ def test_garbage_dropped_bytes_and_bursts_are_counted_and_recovered(session_path
     arrivals = np.unique(imu.t_host_ns)
     assert len(arrivals) < 0.5 * len(imu)
     assert np.all(np.diff(imu.t_device_ns) > 0)
-    # bus times are spread out again by the device clock, not bunched at the burst arrivals
-    assert len(np.unique(imu.t_bus_ns)) == len(imu)
+    # bus times are spread out again by the device clock, not bunched at the burst arrivals (a few may still
+    # share one: a reading is never stamped after it arrived, and a busy machine delays some of the early ones)
+    assert np.all(np.diff(imu.t_bus_ns) >= 0)
+    assert len(np.unique(imu.t_bus_ns)) >= 0.9 * len(imu) > 1.8 * len(arrivals)
     # every reading damaged by the dropped bytes or garbage is a counted loss, the rest arrived
     got = set(reading_index(imu.t_device_ns).tolist())
     missing = [i for i, _ in sent if i not in got]
