@@ -180,6 +180,8 @@ class RecordScanner:
         reader = _readers().get(op)
         if reader is None:
             return None
+        if op == 0x06 and not self._chunk_framed(pos, length):
+            return None     # (checked before the body is copied: a false resync candidate costs little)
         body = self.mm[pos + _hdr.size:pos + _hdr.size + length]
         rds = ReadDataStream(io.BytesIO(body))
         try:
@@ -197,6 +199,17 @@ class RecordScanner:
         if op == 0x06 and decompress:
             return self._chunk_records(pos, rec)
         return rec
+
+    def _chunk_framed(self, pos: int, length: int) -> bool:
+        """Whether a chunk's own lengths (compression name, records) add up to its record length."""
+        o = pos + _hdr.size + 28
+        if length < 40:
+            return False
+        (clen,) = struct.unpack_from("<I", self.mm, o)
+        if clen > length - 40:
+            return False
+        (dlen,) = struct.unpack_from("<Q", self.mm, o + 4 + clen)
+        return 28 + 4 + clen + 8 + dlen == length
 
     def _chunk_records(self, pos: int, chunk: Any) -> list[Any] | None:
         from mcap.records import Chunk

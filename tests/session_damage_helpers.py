@@ -11,6 +11,7 @@ back with what the damaged chunks held.
 
 from __future__ import annotations
 
+import functools
 import io
 import os
 import random
@@ -20,18 +21,28 @@ from typing import TYPE_CHECKING
 
 from capture.app.orchestrator import Capture
 from capture.errors import SessionError
-from capture.session import SessionReader
+from capture.session import SessionReader, SessionWriter
 
 if TYPE_CHECKING:
     from pathlib import Path
 
 
-def make_session(path: Path | str, seconds: int = 10, max_loss_s: float = 0.1) -> None:
-    """A session of three synthetic devices, flushed often enough to hold many chunks."""
+def make_session(path: Path | str, seconds: int = 10, max_loss_s: float = 0.1, chunk_bytes: int = 32 << 10,
+                 writer: type[SessionWriter] = SessionWriter) -> None:
+    """A session of three synthetic devices in chunks of ``chunk_bytes`` (as many as a long take has,
+    however fast this machine records), written by ``writer``."""
+    import capture.app.orchestrator as orch
+
     d = f"realtime=false&duration={seconds}"
-    Capture([f"a=synth://imu?rate=200&{d}", f"b=synth://imu?rate=100&seed=2&{d}",
-             f"c=synth://imu?rate=50&seed=3&{d}"],
-            output=str(path), fsync=False, overwrite=True, max_loss_s=max_loss_s).run(None)
+    names = vars(orch)
+    saved = names["SessionWriter"]
+    names["SessionWriter"] = functools.partial(writer, chunk_bytes=chunk_bytes)
+    try:
+        Capture([f"a=synth://imu?rate=200&{d}", f"b=synth://imu?rate=100&seed=2&{d}",
+                 f"c=synth://imu?rate=50&seed=3&{d}"],
+                output=str(path), fsync=False, overwrite=True, max_loss_s=max_loss_s).run(None)
+    finally:
+        names["SessionWriter"] = saved
 
 
 @dataclass

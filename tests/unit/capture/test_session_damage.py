@@ -75,12 +75,9 @@ class _OldWriter(SessionWriter):
         return None
 
 
-def test_old_sessions_without_repeated_definitions_still_read(tmp_path: Path, monkeypatch) -> None:
-    import capture.app.orchestrator as orch
-
-    monkeypatch.setattr(orch, "SessionWriter", _OldWriter)
+def test_old_sessions_without_repeated_definitions_still_read(tmp_path: Path) -> None:
     p = tmp_path / "old.mcap"
-    make_session(p, seconds=6)
+    make_session(p, seconds=6, writer=_OldWriter)
     data = p.read_bytes()
     assert DEFINITIONS.encode() not in data
     ref = total_samples(SessionReader(str(p)))
@@ -204,3 +201,25 @@ def test_a_zstd_bomb_chunk_is_refused(session: Path, tmp_path: Path) -> None:
     assert r.damaged.get("MCAP chunk", 0) >= 1
     assert sum(len(v) for v in total_samples(r).values()) == sum(
         len(v) for v in total_samples(SessionReader(str(session))).values())
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(
+    st.binary(min_size=1, max_size=64),
+    st.tuples(st.sampled_from([1, 2, 3, 4, 6, 7, 8, 9, 12, 15]), st.integers(0, 2**64 - 1)).map(
+        lambda t: struct.pack("<BQ", *t)),
+    st.tuples(st.sampled_from([1, 4, 6, 7, 9, 12]), st.integers(0, 300)).map(lambda t: struct.pack("<BQ", *t))),
+    max_size=40))
+def test_the_record_walk_survives_any_bytes(parts) -> None:
+    """Record headers with any opcode and length among arbitrary bytes: the walk ends, every
+    record it yields parsed, and whatever it skipped is reported."""
+    from capture.session_file import MCAP_MAGIC
+    from capture.session_scan import RecordScanner
+
+    data = MCAP_MAGIC + b"".join(parts)
+    damage: list[str] = []
+    sc = RecordScanner(data, lambda what, why: damage.append(what))
+    recs = list(sc.records())
+    assert len(recs) <= len(data) // 9
+    assert sc.result.skipped_bytes <= len(data)
+    assert (sc.result.truncated is not None) or sc.result.footer or damage or sc.result.data_end
