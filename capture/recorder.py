@@ -64,6 +64,7 @@ class SessionRecorder(Subscriber):
         # Devices may be declared while the take runs (serve adds phones as they pair); the writer is
         # touched under this lock by both the declaring thread and the recorder's own thread.
         self._wlock = threading.Lock()
+        self._fail_lock = threading.Lock()
         self.flush_ns = int(max_loss_s * 0.5e9)
         self.encode_ns = int(min(encode_interval_s, max_loss_s / 4) * 1e9)
         self._raw: dict[str, list[Chunk]] = {}
@@ -95,16 +96,25 @@ class SessionRecorder(Subscriber):
         """Declare a device before its reader starts (so its channels exist when data comes)."""
         rec = DeviceRecord(name, kind, url, options, _identity_dict(identity), [s.name for s in streams],
                            dict(descriptors or {}))
-        with self._wlock:
-            for s in streams:
-                self._channels[s.name] = len(s.channels)
-            self.writer.add_device(rec, streams)
+        self._declare(lambda: self.writer.add_device(rec, streams), {s.name: len(s.channels) for s in streams})
 
     def add_stream(self, info: StreamInfo) -> None:
         """Declare a derived stream (fusion output and the like)."""
+        self._declare(lambda: self.writer.add_stream(info), {info.name: len(info.channels)})
+
+    def _declare(self, write: Callable[[], None], channels: dict[str, int]) -> None:
+        """Declare under the writer's lock; a write that fails ends the recording like any other (the
+        caller, e.g. a phone being admitted, goes on: its data is counted as not saved)."""
         with self._wlock:
-            self._channels[info.name] = len(info.channels)
-            self.writer.add_stream(info)
+            self._channels.update(channels)
+            if self.failed is not None:
+                return
+            try:
+                write()
+                return
+            except Exception as exc:
+                error = exc
+        self._fail(error, "writing")
 
     # -- subscriber ------------------------------------------------------------------------------
     def on_item(self, item: Any) -> None:
@@ -171,6 +181,18 @@ class SessionRecorder(Subscriber):
 
     def _fail(self, exc: Exception, doing: str) -> None:
         """The recording ends: the file is cut back to the last flush and closed; say what it holds."""
+        with self._fail_lock:
+            if self.failed is not None:
+                return  # another thread's write failed first
+            self._fail_locked(exc, doing)
+        cb, failed = self.on_failed, self.failed
+        if cb is not None and failed is not None:
+            try:
+                cb(failed)
+            except Exception:
+                log.exception("recorder: the failure handler failed")
+
+    def _fail_locked(self, exc: Exception, doing: str) -> None:
         self.failed = exc if isinstance(exc, SessionError) else SessionError(
             f"internal error while {doing} {self.writer.path}: {type(exc).__name__}: {exc}", path=self.writer.path)
         self._raw, self._smp, self._ctrl = {}, {}, []
@@ -180,12 +202,6 @@ class SessionRecorder(Subscriber):
         held = sum(self.saved.values())
         log.error("recorder: %s; recording stopped: the file keeps %s%d samples (up to its last flush), the rest"
                   " is not saved", self.failed, "" if self.saved_exact else "at least ", held)
-        cb = self.on_failed
-        if cb is not None:
-            try:
-                cb(self.failed)
-            except Exception:
-                log.exception("recorder: the failure handler failed")
 
     def _count_saved_from_file(self) -> None:
         """The file could not be cut back: count what it holds by reading it."""

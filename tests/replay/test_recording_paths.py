@@ -93,7 +93,7 @@ def test_bad_paths_are_refused_with_their_reason(tmp_path, path, says):
 
 def test_overwrite_replaces_only_perfcap_sessions(tmp_path):
     sess = _take(str(tmp_path / "take.mcap"))
-    with pytest.raises(SessionExistsError, match=r"already exists \(use --overwrite to replace it; it is a perfcap session\)"):
+    with pytest.raises(SessionExistsError, match=r"already exists \(use --overwrite to replace it; it is a perfcap"):
         _take(sess)
     _take(sess, overwrite=True)
     assert SessionReader(sess).summary == {}

@@ -84,9 +84,14 @@ def recorder_trials(seed: int, n: int, directory: str) -> None:
             t0 = clock.now_ns()
             for item in dev.open():
                 rec.on_item(item)
+            declare_at = rng.uniform(0.0, take_s) * 1e9  # a device declared mid-take (serve admits phones so)
+            declared = []
             while rec.failed is None and clock.now_ns() - t0 < take_s * 1e9:
                 for item in dev.poll(0.1):
                     rec.on_item(item)
+                if not declared and clock.now_ns() - t0 >= declare_at:
+                    declared.append(_declare_other(rec, clock, "b"))
+            declared.append(_declare_other(rec, clock, "c"))  # after the take (or its failure): never raises
             rec.stop()
             resource.setrlimit(resource.RLIMIT_FSIZE, (inf, inf))
             r = SessionReader(path)
@@ -94,9 +99,24 @@ def recorder_trials(seed: int, n: int, directory: str) -> None:
             res.update(created=True, failed=None if rec.failed is None else str(rec.failed), on_failed=len(calls),
                        saved={s: v for s, v in rec.saved.items() if v}, read={s: v for s, v in read.items() if v},
                        received=rec.received, exact=rec.saved_exact, size=os.path.getsize(path),
-                       complete=r.truncated is None, damaged=r.damaged)
+                       complete=r.truncated is None, damaged=r.damaged, declared=declared)
         finally:
             resource.setrlimit(resource.RLIMIT_FSIZE, (inf, inf))
             dev.close()
             res["leftovers"] = sorted(e for e in os.listdir(directory) if e.endswith(".part"))
             print(json.dumps(res), flush=True)
+
+
+def _declare_other(rec, clock, name: str) -> str:
+    """Declare another device to ``rec``; what it raised ("ok" if nothing)."""
+    from devices import open_device
+
+    other = open_device(f"{name}=synth://imu?rate=100", clock=clock)
+    try:
+        rec.add_device(other.name, other.kind, other.transport.url, other.device_options, other.identity,
+                       other.streams)
+        return "ok"
+    except Exception as exc:
+        return f"{type(exc).__name__}: {exc}"
+    finally:
+        other.close()
