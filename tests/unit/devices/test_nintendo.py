@@ -330,7 +330,7 @@ def test_blank_calibration_falls_back_to_nominal_with_warnings(caplog):
 def test_fuzzed_reports_never_raise(data):
     c = SwitchCodec()
     frames = c.feed(data)
-    assert len(frames) + c.stats.errors == (1 if data else 0)
+    assert len(frames) + c.stats.errors == 1  # an empty report is counted too
 
 
 @settings(max_examples=60, deadline=None)
