@@ -13,6 +13,10 @@ Layout of a perfcap session (MCAP profile ``perfcap``):
 * channel ``/events`` (JSON): device state changes, protocol errors, overflows, notes.
 * metadata ``perfcap.summary`` when the take ended cleanly.
 
+The definitions (session metadata, devices, channels) are repeated outside the chunks as CRC-checked
+``perfcap.definitions`` metadata after the flushes that follow a change, so no single chunk or
+record holds the only copy (``session_scan`` reads around damage).
+
 Blocks are columnar (int64 columns delta-coded, float64 values byte-shuffled) so zstd compresses
 them to about the size of the raw bytes. Every block is a separate MCAP message, and the writer
 closes an MCAP chunk and flushes the file at least every ``flush_interval_s``, so a killed recorder
@@ -477,8 +481,12 @@ class _Scan:
 
 
 class SessionReader:
-    """Reads a session, complete or cut short (a killed recorder): everything up to the last complete
-    MCAP chunk is returned and ``truncated`` says why reading stopped early.
+    """Reads a session, complete, cut short (a killed recorder) or damaged: everything up to the last
+    complete MCAP chunk is returned and ``truncated`` says why reading stopped early. A damaged
+    record or chunk is skipped to the next one that parses and costs only its own blocks: channel,
+    device and session definitions are recovered from the chunks, the summary or the writer's
+    repeated copies (``damaged`` counts what was skipped, ``damaged_regions`` says where). Every
+    count and length the file states is bounded by what the file can hold (``session_scan``).
 
     The file is read once, in the constructor; the blocks are kept in memory (compressed by the
     column encoding, not decoded) and decoded on demand. ``SessionReader.open`` shares one reader per
