@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = s.serve
     for flag, host in (("--host", cfg.host), ("--control-host", cfg.control_host), ("--public-host", cfg.public_host)):
         _check_host(flag, host)
-    if not os.path.isdir(cfg.sessions_dir):
+    if cfg.sessions_dir and not os.path.isdir(cfg.sessions_dir):  # "": the default, made on first use
         raise ConfigError(f"sessions_dir {cfg.sessions_dir} (--sessions-dir, [serve] sessions_dir or"
                           " PERFCAP_SERVE_SESSIONS_DIR) is not a folder")
     if cfg.state_dir and os.path.lexists(cfg.state_dir) and not os.path.isdir(cfg.state_dir):
