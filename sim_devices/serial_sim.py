@@ -190,7 +190,13 @@ class PtySerialDevice:
         except FileNotFoundError:
             pass
         os.symlink(self.slave_name, tmp)
-        os.replace(tmp, self.path)  # atomic: the path never points at a dead pty
+        try:
+            os.replace(tmp, self.path)  # atomic: the path never points at a dead pty
+        except OSError:
+            os.unlink(tmp)              # (the path is a folder, say): no link left behind
+            os.close(master)
+            self._master = None
+            raise
         log.debug("sim serial at %s -> %s", self.path, self.slave_name)
 
     def _unplug(self, record: bool = True) -> None:
