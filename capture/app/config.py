@@ -4,7 +4,9 @@ Precedence, strongest first: explicit overrides (CLI flags), environment variabl
 (``PERFCAP_<SECTION>_<KEY>``, e.g. ``PERFCAP_RECORDER_MAX_LOSS_S=0.5``), the ``--config`` file, the
 profile (``config/<profile>.toml`` in the source tree), then the defaults below. Every key is
 checked: an unknown section or key, or a value of the wrong type, is a ``ConfigError`` naming the
-file, the key and the expected form.
+file, the key and the expected form. So is a ``PERFCAP_*`` variable that names no setting (naming the
+one it resembles: a misspelt variable would otherwise be a setting silently not applied), and a file
+that is no regular file, larger than 1 MiB, or nested or dotted too deeply to parse in bounded time.
 
 A config file looks like::
 
