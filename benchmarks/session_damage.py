@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import logging
 import random
+import shutil
 import sys
 import tempfile
 import time
@@ -65,6 +66,7 @@ def main() -> None:
     check("every loss reported", res.silent_losses + blk.silent_losses == 0,
           f"{res.silent_losses + blk.silent_losses} silent")
     replay_sample(pristine, work, args)
+    shutil.rmtree(work, ignore_errors=True)
     summary()
 
 
