@@ -209,6 +209,8 @@ def _load_file(path: Path, settings: Settings) -> None:
             raise ConfigError(f"{where}: not a config file: a key of more than {MAX_KEY_PARTS} dotted parts",
                               source=where)
         data = tomllib.loads(text)
+    except ConfigError:
+        raise
     except FileNotFoundError:
         raise ConfigError(f"{where}: no such config file", source=where) from None
     except IsADirectoryError:

@@ -120,6 +120,7 @@ def test_fifos_and_devices_are_refused_not_waited_on(tmp_path, capsys):
                  ["puppet", "--input", "/dev/zero"], ["cycle", str(fifo)]):
         code, _, err = run(capsys, *argv)
         assert code == 2 and ("FIFO" in _error(err) or "device" in err), (argv, err)
+        assert "not valid TOML" not in err
 
 
 def test_usage_errors_are_one_line(capsys):
