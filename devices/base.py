@@ -11,13 +11,11 @@ is an event in the session. A kind's module (``devices.witmotion``, ...) declare
 performs its handshake and maps codec frames to readings.
 
 No message can end a device: ``process_chunk`` is the one place where a chunk is decoded (codec,
-``frame_to_readings``, ``send_ticks``, stamping), and an exception anywhere in it is that chunk's
-error, counted in ``stats.decode_errors`` (and as a codec framing error, so summaries show it),
-logged with a rate limit and reported as a ``PROTOCOL_ERRORS`` event; only strict mode raises it,
-as a ``ProtocolError``. Readings the clock cannot carry are refused there too, each counted in
-``stats.bad_readings``: an infinite value, or device ticks outside the stream's clock (beyond its
-wrap, or beyond ``MAX_DEVICE_NS`` of device time). Codecs still refuse bad numbers themselves,
-with their reason; this is the net under them.
+``frame_to_readings``, ``send_ticks``, stamping); an exception in it is that chunk's error, counted
+in ``stats.decode_errors`` and as a codec framing error, logged with a rate limit, reported as a
+``PROTOCOL_ERRORS`` event (strict mode raises a ``ProtocolError``). Readings with an infinite value
+or ticks outside their clock (its wrap, or ``MAX_DEVICE_NS``) are refused there, counted in
+``stats.bad_readings``. Codecs refuse bad numbers themselves, with their reason; this is the net.
 """
 
 from __future__ import annotations
@@ -254,7 +252,7 @@ class Device(abc.ABC, Generic[CodecT]):
                 readings = self._checked([r for f in frames for r in self.frame_to_readings(f)])
                 send = self.send_ticks(frames)
                 if send is not None and not self._ticks_ok(self._send_stream, send):
-                    self._bad_number(f"send time of {send!r:.40} ticks is outside the device clock")
+                    self._refused("bad_readings", f"send time of {send!r:.40} ticks is outside the device clock")
                     send = None
                 self._stamp_readings(readings, chunk.t_ns, stamped, send)
         except ProtocolError:
@@ -274,66 +272,48 @@ class Device(abc.ABC, Generic[CodecT]):
 
     def _decode_failed(self, why: str, chunk: Chunk) -> None:
         """Count a chunk whose decode raised as one error (the device goes on)."""
-        st = self.stats
-        st.decode_errors += 1
-        self.codec.stats.framing_errors += 1
-        n = st.decode_errors
-        if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
-            log.warning("device %s: a chunk of %d bytes could not be decoded (%s); dropped, the device goes on "
-                        "(%d such chunk(s) so far, all counted)", self.name, len(chunk.data), why[:300], n)
-            log.debug("traceback of the decode error in device %s", self.name, exc_info=True)
-        else:
-            log.debug("device %s: chunk not decoded: %s", self.name, why[:300])
+        self._refused("decode_errors", f"a chunk of {len(chunk.data)} bytes could not be decoded ({why[:300]}); "
+                      "dropped, the device goes on")
 
-    def _bad_number(self, why: str) -> bool:
-        """Count one refused reading (or send time); True."""
-        st = self.stats
-        st.bad_readings += 1
+    def _refused(self, counter: str, why: str) -> None:
+        """Count one refusal in ``stats.<counter>`` and as a codec framing error; log the first few,
+        then one in ``_LOG_EVERY``."""
+        n = getattr(self.stats, counter) + 1
+        setattr(self.stats, counter, n)
         self.codec.stats.framing_errors += 1
-        n = st.bad_readings
         if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
-            log.warning("device %s: %s; refused (%d refused so far, all counted)", self.name, why, n)
+            log.warning("device %s: %s (%d so far, all counted in %s)", self.name, why, n, counter)
+            log.debug("traceback of device %s", self.name, exc_info=True)
         else:
-            log.debug("device %s: %s; refused", self.name, why)
-        return True
+            log.debug("device %s: %s", self.name, why)
 
     def _ticks_ok(self, si: int, tk: Any) -> bool:
-        """Whether ``tk`` is an integer within stream ``si``'s clock."""
-        if type(tk) is not int:
-            if isinstance(tk, bool) or not isinstance(tk, (int, np.integer)):
-                return False
-            tk = int(tk)
+        """Whether ``tk`` is an integer (not a bool) within stream ``si``'s clock."""
+        if type(tk) is not int and (isinstance(tk, bool) or not isinstance(tk, (int, np.integer))):
+            return False
         lo, hi = self._tick_range[si]
-        return lo <= tk < hi
+        return lo <= int(tk) < hi
 
     def _checked(self, readings: list[Reading]) -> list[Reading]:
-        """``readings`` without those the streams cannot carry (each counted): an infinite value
-        (NaN is "no value" and passes), ticks on a stream without a clock, or ticks outside its
-        clock's range."""
-        ok = True
+        """``readings`` without those the streams cannot carry, each counted: an infinite value (NaN
+        is "no value" and passes), or ticks outside the stream's clock (or on a stream without one)."""
         tick_range = self._tick_range
-        for r in readings:
-            tot = sum(r.values)
-            tk = r.ticks
-            if tot - tot != 0.0 and any(math.isinf(v) for v in r.values):
-                ok = False
+        for r in readings:  # the common case: all good, checked cheaply
+            tot, tk = sum(r.values), r.ticks
+            if tot - tot != 0.0 and any(map(math.isinf, r.values)):
                 break
-            if tk is not None:
-                lo, hi = tick_range[r.stream]
-                if type(tk) is not int or not lo <= tk < hi:
-                    ok = False
-                    break
-        if ok:
+            if tk is not None and (type(tk) is not int or not tick_range[r.stream][0] <= tk < tick_range[r.stream][1]):
+                break
+        else:
             return readings
         good: list[Reading] = []
         for r in readings:
-            tk = r.ticks
-            name = self._names[r.stream] if 0 <= r.stream < len(self._names) else f"stream {r.stream}"
+            name = self._names[r.stream]
             if any(math.isinf(v) for v in r.values):
-                self._bad_number(f"{name}: a reading with an infinite value {r.values!r:.200}")
-            elif tk is not None and not self._ticks_ok(r.stream, tk):
-                self._bad_number(f"{name}: device time {tk!r:.40} ticks is outside the stream's clock "
-                                 f"[{tick_range[r.stream][0]}, {tick_range[r.stream][1]})")
+                self._refused("bad_readings", f"{name}: a reading with an infinite value {r.values!r:.200}; refused")
+            elif r.ticks is not None and not self._ticks_ok(r.stream, r.ticks):
+                self._refused("bad_readings", f"{name}: device time {r.ticks!r:.40} ticks is outside the stream's "
+                              f"clock {tick_range[r.stream]}; refused")
             else:
                 good.append(r)
         return good
