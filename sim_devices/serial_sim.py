@@ -95,6 +95,10 @@ class PtySerialDevice:
             self._tmpdir = tempfile.mkdtemp(prefix="perfcap-sim-")
             path = os.path.join(self._tmpdir, "ttySIM0")
         self.path = os.path.abspath(path)
+        if os.path.lexists(self.path) and not os.path.islink(self.path):
+            # the port is a symlink the simulator owns: it replaces and removes it, so it never takes the
+            # place of a file, a folder or a device (``--link /dev/zero`` would remove /dev/zero)
+            raise ConfigError(f"{self.path} exists and is not a symlink: the simulated port needs a path of its own")
         self.burst_ns = int(burst_ms * 1e6)
         self.burst_bytes = max(1, burst_bytes)
         self.garbage = garbage

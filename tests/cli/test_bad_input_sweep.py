@@ -69,6 +69,18 @@ def test_sim_serial_refuses_bad_numbers(capsys, flag, value):
     assert code == 2 and flag in _error(err)
 
 
+def test_sim_serial_never_takes_the_place_of_a_file(tmp_path, capsys):
+    """``--link`` names the simulator's own symlink: an existing file, folder, FIFO or device is left alone."""
+    keep = tmp_path / "keep.txt"
+    keep.write_text("mine")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for path in (keep, tmp_path, fifo, "/dev/zero"):
+        code, _, err = run(capsys, "sim", "serial", "--link", str(path), "--duration", "0.05")
+        assert code == 2 and "is not a symlink" in _error(err)
+    assert keep.read_text() == "mine" and fifo.exists() and os.path.exists("/dev/zero")
+
+
 @pytest.mark.parametrize("argv,match", [
     (["--sessions-dir", "{tmp}/none"], "sessions_dir {tmp}/none"),
     (["--state-dir", "/proc/self/status"], "is not a folder"),
