@@ -296,7 +296,9 @@ class Device(abc.ABC, Generic[CodecT]):
 
     def _checked(self, readings: list[Reading]) -> list[Reading]:
         """``readings`` without those the streams cannot carry, each counted: an infinite value (NaN
-        is "no value" and passes), or ticks outside the stream's clock (or on a stream without one)."""
+        is "no value" and passes), or ticks outside the stream's clock. Ticks on a stream without a clock
+        are not its time (a WitMotion sends time packets whether or not they are used): they are dropped
+        and the reading kept."""
         tick_range = self._tick_range
         for r in readings:  # the common case: all good, checked cheaply
             tot, tk = sum(r.values), r.ticks
@@ -309,6 +311,8 @@ class Device(abc.ABC, Generic[CodecT]):
         good: list[Reading] = []
         for r in readings:
             name = self._names[r.stream]
+            if r.ticks is not None and self.streams[r.stream].clock is None:
+                r = r._replace(ticks=None)  # noqa: PLW2901 (the same reading, without the ticks it cannot use)
             if any(math.isinf(v) for v in r.values):
                 self._refused("bad_readings", f"{name}: a reading with an infinite value {r.values!r:.200}; refused")
             elif r.ticks is not None and not self._ticks_ok(r.stream, r.ticks):

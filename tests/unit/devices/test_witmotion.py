@@ -169,3 +169,18 @@ def test_last_pending_cycle_of_a_take_is_emitted(tmp_path):
     r = SessionReader(str(s))
     assert len(r.samples("a/imu")) == 1 and len(r.samples("a/euler")) == 1
     assert os.path.getsize(s) > 0
+
+
+def test_time_packets_without_the_device_clock_keep_every_reading():
+    # a WitMotion outputs time packets by default; without device_clock=true they are not the stream's
+    # time, and the readings they come with are kept (arrival-stamped), none refused as bad
+    d = _device("w=witmotion@synth://imu?realtime=false&duration=0.1&rate=100&device_clock=false")
+    assert all(s.clock is None for s in d.streams)
+    codec = WitMotionCodec()
+    data = b"".join(encode_cycle(codec, (0, 0, 1), (0, 0, 0), (0, 0, 0), 20, 43_200_000 + 10 * i)[0]
+                    for i in range(6))
+    items = d.process_chunk(Chunk(data, 9_000_000_000))
+    imu = [x for x in items if isinstance(x, Sample) and x.stream == "w/imu"]
+    assert len(imu) == 6 and all(x.t_device_ns is None for x in imu)
+    assert d.stats.bad_readings == 0 and d.codec.stats.framing_errors == 0
+    d.close()
