@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY="${1:-.venv/bin/python}"
-for b in bench_bus bench_clocksync bench_phone_clock bench_replay bench_recorder bench_serial bench_serial_codecs bench_fusion bench_hid bench_serve bench_cycles; do
+for b in bench_bus bench_clocksync bench_phone_clock bench_replay bench_recorder bench_serial bench_serial_codecs bench_fusion bench_hid bench_serve bench_cycles bench_puppet; do
     echo
     echo "################ benchmarks/$b.py"
     "$PY" "benchmarks/$b.py"
