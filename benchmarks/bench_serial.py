@@ -40,7 +40,7 @@ from _common import check, header, pct, summary  # noqa: E402
 from capture.app.orchestrator import Capture  # noqa: E402
 from capture.sample import Chunk, ChunkRun  # noqa: E402
 from devices import open_device  # noqa: E402
-from devices.base import ReconnectPolicy  # noqa: E402
+from devices.reader import ReconnectPolicy  # noqa: E402
 from sim_devices.frames import ENCODERS, WavingSource  # noqa: E402
 
 START_MS = 12 * 3_600_000

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING, Any
 
 from capture.clock import MONOTONIC, Clock
 from capture.errors import ConfigError, DeviceUnavailableError
-from devices.base import Device, DeviceReader, DeviceState, ReconnectPolicy
+from devices.base import Device, DeviceState
+from devices.reader import DeviceReader, ReconnectPolicy
 from devices.transports import known_schemes, open_transport, split_url, transport_class
 
 if TYPE_CHECKING:

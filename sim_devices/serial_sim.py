@@ -95,10 +95,13 @@ class PtySerialDevice:
             self._tmpdir = tempfile.mkdtemp(prefix="perfcap-sim-")
             path = os.path.join(self._tmpdir, "ttySIM0")
         self.path = os.path.abspath(path)
-        if os.path.lexists(self.path) and not os.path.islink(self.path):
+        if os.path.lexists(self.path) and not _stale_port_link(self.path):
             # the port is a symlink the simulator owns: it replaces and removes it, so it never takes the
-            # place of a file, a folder or a device (``--link /dev/zero`` would remove /dev/zero)
-            raise ConfigError(f"{self.path} exists and is not a symlink: the simulated port needs a path of its own")
+            # place of a file, a folder, a device (``--link /dev/zero`` would remove /dev/zero) or another
+            # link (a udev ``/dev/serial/by-id`` name); only a link to a pseudo-terminal, an earlier run's
+            # port, is taken over
+            raise ConfigError(f"{self.path} exists and is not an earlier simulated port: the simulated port "
+                              "needs a path of its own")
         self.burst_ns = int(burst_ms * 1e6)
         self.burst_bytes = max(1, burst_bytes)
         self.garbage = garbage
@@ -445,6 +448,14 @@ def _check_writable(path: str) -> None:
         raise ConfigError(f"--sent-log {path}: the folder {folder} is not writable")
 
 
+def _stale_port_link(path: str) -> bool:
+    """Whether ``path`` is a symlink to a pseudo-terminal (what a simulated port leaves behind)."""
+    try:
+        return os.path.islink(path) and os.readlink(path).startswith("/dev/pts/")
+    except OSError:
+        return False
+
+
 COMMANDS = "unplug | replug | garbage N | drop N | stall SECONDS | burst MS | quit"
 
 
@@ -491,27 +502,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         "stall": sim.stall, "burst": sim.set_burst}
 
     def commands() -> None:
-        for line in sys.stdin:
-            words = line.split()
-            if not words:
-                continue
-            try:
-                arg = float(words[1]) if len(words) > 1 else None
-                cmd = words[0]
-                if cmd == "quit":
-                    stop.set()
-                    return
-                if cmd == "unplug":
-                    sim.unplug()
-                elif cmd == "replug":
-                    sim.replug()
-                elif cmd in with_arg and arg is not None and arg >= 0:
-                    with_arg[cmd](arg)
-                else:
-                    raise ValueError
-                print(f"# {line.strip()}: ok", file=sys.stderr, flush=True)
-            except ValueError:
-                print(f"# unknown command {line.strip()!r}; commands: {COMMANDS}", file=sys.stderr, flush=True)
+        try:
+            for line in sys.stdin:
+                run_command(line)
+        except (OSError, ValueError) as exc:  # no readable stdin (closed, or not a stream): no commands
+            print(f"# commands off: standard input cannot be read ({exc})", file=sys.stderr, flush=True)
+
+    def run_command(line: str) -> None:
+        words = line.split()
+        if not words:
+            return
+        try:
+            arg = float(words[1]) if len(words) > 1 else None
+            cmd = words[0]
+            if cmd == "quit":
+                stop.set()
+                return
+            if cmd == "unplug":
+                sim.unplug()
+            elif cmd == "replug":
+                sim.replug()
+            elif cmd in with_arg and arg is not None and arg >= 0:
+                with_arg[cmd](arg)
+            else:
+                raise ValueError
+            print(f"# {line.strip()}: ok", file=sys.stderr, flush=True)
+        except ValueError:
+            print(f"# unknown command {line.strip()!r}; commands: {COMMANDS}", file=sys.stderr, flush=True)
 
     threading.Thread(target=commands, daemon=True).start()
     t_end = MONOTONIC.now_ns() + int(args.duration * 1e9) if args.duration > 0 else None

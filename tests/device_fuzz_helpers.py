@@ -33,7 +33,8 @@ from capture.bus import Overflow, SampleBus, Subscriber
 from capture.errors import EndOfStream
 from capture.sample import Chunk, Direction, Sample, SampleBatch
 from devices import open_device
-from devices.base import DeviceReader, DeviceState, ReconnectPolicy
+from devices.base import DeviceState
+from devices.reader import DeviceReader, ReconnectPolicy
 from devices.transports import open_transport
 from devices.transports.base import Transport
 

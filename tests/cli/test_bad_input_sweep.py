@@ -70,15 +70,23 @@ def test_sim_serial_refuses_bad_numbers(capsys, flag, value):
 
 
 def test_sim_serial_never_takes_the_place_of_a_file(tmp_path, capsys):
-    """``--link`` names the simulator's own symlink: an existing file, folder, FIFO or device is left alone."""
+    """``--link`` names the simulator's own symlink: an existing file, folder, FIFO, device or another link
+    (a udev ``/dev/serial/by-id`` name) is left alone; only an earlier run's link to a pty is taken over."""
     keep = tmp_path / "keep.txt"
     keep.write_text("mine")
     fifo = tmp_path / "fifo"
     os.mkfifo(fifo)
-    for path in (keep, tmp_path, fifo, "/dev/zero"):
+    other_link = tmp_path / "by-id"
+    other_link.symlink_to(keep)
+    for path in (keep, tmp_path, fifo, "/dev/zero", other_link):
         code, _, err = run(capsys, "sim", "serial", "--link", str(path), "--duration", "0.05")
-        assert code == 2 and "is not a symlink" in _error(err)
+        assert code == 2 and "is not an earlier simulated port" in _error(err)
     assert keep.read_text() == "mine" and fifo.exists() and os.path.exists("/dev/zero")
+    assert os.readlink(other_link) == str(keep)
+    stale = tmp_path / "ttySIM0"
+    stale.symlink_to("/dev/pts/999")  # what a killed simulator leaves behind
+    code, _, err = run(capsys, "sim", "serial", "--link", str(stale), "--duration", "0.05")
+    assert code == 0, err
 
 
 @pytest.mark.parametrize("argv,match", [

@@ -16,7 +16,8 @@ from capture.app.replay import replay_session
 from capture.calibration_store import CalibrationStore
 from capture.sample import DeviceIdentity
 from capture.session import SessionReader
-from devices.base import DeviceState, ReconnectPolicy
+from devices.base import DeviceState
+from devices.reader import ReconnectPolicy
 from sim_devices.frames import WavingSource
 from sim_devices.serial_sim import PtySerialDevice
 

@@ -28,7 +28,8 @@ from capture.errors import ConfigError, DeviceNotFoundError
 from capture.sample import EventKind, Sample
 from capture.session import SessionReader
 from devices import open_device
-from devices.base import DeviceState, ReconnectPolicy
+from devices.base import DeviceState
+from devices.reader import ReconnectPolicy
 from devices.transports import open_transport
 from sim_devices.frames import SessionSource, WavingSource
 from sim_devices.serial_sim import PtySerialDevice

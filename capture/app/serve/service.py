@@ -41,7 +41,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
 
     from capture.app.serve.config import ServeConfig
-    from devices.base import Device, DeviceReader
+    from devices.base import Device
+    from devices.reader import DeviceReader
 
 log = logging.getLogger(__name__)
 

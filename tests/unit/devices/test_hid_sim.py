@@ -12,8 +12,8 @@ from capture.clock import ManualClock
 from capture.errors import ConfigError, DeviceIOError, DeviceNotFoundError
 from capture.session import SessionReader
 from devices import open_device
-from devices.base import ReconnectPolicy
 from devices.hid.base import BUS_KEY, REPORT_DESCRIPTOR_KEY
+from devices.reader import ReconnectPolicy
 from sim_devices.hid_sim import SimHidTransport
 
 
