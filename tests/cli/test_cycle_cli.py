@@ -108,6 +108,7 @@ def test_headerless_csv_uses_the_first_column_as_time(take, tmp_path, capsys):
     code, out, err = run(capsys, "cycle", p, "--json")
     assert code == 0, err
     s = json.loads(out)
+    assert s["ok"] is True
     assert s["channels"] == ["c1"] and s["period_s"] == pytest.approx(take.period_s, rel=0.03)
 
 
@@ -179,9 +180,24 @@ def test_white_noise_has_no_cycle(tmp_path, capsys):
     rng = np.random.default_rng(5)
     t = np.arange(1200) / 120.0
     p = write_csv(tmp_path / "noise.csv", ["t", "x", "y"], [[ti, *rng.standard_normal(2)] for ti in t])
-    code, out, err = run(capsys, "cycle", p, "--json")
+    code, out, err = run(capsys, "cycle", p)
     assert code == 1 and out == ""
     assert "no cycle" in one_line(err)
+
+
+@pytest.mark.parametrize("kind", ["white noise", "still"])
+@pytest.mark.parametrize("seed", range(3))
+def test_json_says_no_cycle_as_one_object_too(tmp_path, capsys, kind, seed):
+    rng = np.random.default_rng(seed)
+    t = np.arange(1500) / 100.0
+    # (random walks are not among them: some are still taken as periodic, issue 17's cycle item)
+    x = rng.standard_normal((t.size, 2)) if kind == "white noise" else np.full((t.size, 2), 1.5)
+    p = write_csv(tmp_path / "in.csv", ["t", "x", "y"], [[ti, *row] for ti, row in zip(t, x, strict=True)])
+    code, out, err = run(capsys, "cycle", p, "--json")
+    assert code == 1 and "no cycle" in one_line(err)
+    s = json.loads(out)  # one object on stdout, as on success
+    assert s["ok"] is False and s["error"] == "no cycle" and s["reason"] in one_line(err)
+    assert s["input"] == p and s["input_samples"] == t.size and s["stream"] is None
 
 
 def test_constant_input_does_not_move(tmp_path, capsys):

@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     import argparse
 
     from capture.app.cli.common import Subcommands
+    from capture.app.cycle_input import CycleInput
 
 
 def add_parser(sub: Subcommands) -> None:
@@ -46,6 +47,8 @@ def run(args: argparse.Namespace) -> int:
         cyc = extract_cycle(inp, args.seed)
     except CycleError as exc:
         err(f"perfcap: no cycle in {inp.source}: {exc}")
+        if args.json:  # a script reading stdout gets an object either way, and "ok" says which
+            out(json.dumps({"ok": False, "error": "no cycle", "reason": str(exc), **_input_fields(args, inp)}))
         return EXIT_NO_CYCLE
     except ValueError as exc:
         raise ConfigError(f"{inp.source}: {exc}") from None
@@ -58,10 +61,7 @@ def run(args: argparse.Namespace) -> int:
         write_cycle_report(cyc, args.report, f"{inp.source}: {len(inp.channels)} channel(s)")
     s = cyc.summary()
     if args.json:
-        s.update({"input": args.input, "stream": inp.stream,
-                  "time_origin_ns": inp.origin_ns, "input_samples": len(inp.t),
-                  "rows_skipped": inp.dropped, "csv": args.output, "report": args.report})
-        out(json.dumps(s))
+        out(json.dumps({"ok": True, **s, **_input_fields(args, inp), "csv": args.output, "report": args.report}))
         return 0
     out(f"cycle: period {cyc.period_s:.4f} s from {cyc.loops} loops, confidence {cyc.confidence:.2f}, "
         f"closure error {cyc.closure_error:.3g} sd, extracted in {cyc.elapsed_ms:.1f} ms")
@@ -78,3 +78,9 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         out(f"  report written to {args.report}")
     return 0
+
+
+def _input_fields(args: argparse.Namespace, inp: CycleInput) -> dict[str, object]:
+    """What ``--json`` says of the input, on success and on failure alike."""
+    return {"input": args.input, "stream": inp.stream, "time_origin_ns": inp.origin_ns,
+            "input_samples": len(inp.t), "rows_skipped": inp.dropped}
