@@ -1,7 +1,6 @@
 """hid-recorder captures (``.hid``) replayed as a simulated HID device: ``simhid:///path/file.hid``.
 
-The format (hid-tools' ``hid-recorder``), one item per line, ``#`` lines are comments (hid-decode
-output, skipped)::
+The format (hid-tools' ``hid-recorder``), one item per line::
 
     D: 0                       device index (a capture may hold several devices)
     R: 220 05 01 09 02 ...     report descriptor: length, then hex bytes
@@ -10,9 +9,12 @@ output, skipped)::
     I: 3 0b33 1004             bus (3 = USB, 5 = Bluetooth), vendor, product (hex)
     E: 000000.003905 16 01 01 ...   an input report: seconds.microseconds, length, hex bytes
 
-Lines holding only hex bytes continue the ``R:`` or ``E:`` line before them (captures pasted
-from documents are often wrapped). Files that hold only ``E:`` lines (``.events.txt``) take the
-descriptor (and ``I:``/``N:``) from another capture named by the option ``rdesc_file``. A capture
+Any other line (``#`` comments, hid-decode output, free text, an unknown ``X:`` prefix) is skipped,
+as ``hid-replay`` skips lines it does not know: the skipped lines are counted
+(``HidRecording.skipped``) and logged, never dropped silently. Lines holding only hex bytes
+continue the ``R:`` or ``E:`` line before them (captures pasted from documents are often wrapped).
+Files that hold only ``E:`` lines (``.events.txt``) take the descriptor (and ``I:``/``N:``) from
+another capture named by the option ``rdesc_file``. A capture
 is read only when it is a regular file of at most ``MAX_TRACE_BYTES`` with lines of at most
 ``MAX_LINE``, its descriptors and reports no longer than Linux allows, its times finite seconds;
 anything else is a ``TraceError`` naming the file and line.
@@ -20,6 +22,7 @@ anything else is a ``TraceError`` naming the file and line.
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -33,6 +36,8 @@ from sim_devices.hid_sim import HidResponder, trace_path
 if TYPE_CHECKING:
     from collections.abc import Iterator, Mapping
 
+log = logging.getLogger(__name__)
+
 BUSES = {3: "usb", 5: "bluetooth", 0x18: "i2c", 0x1C: "spi"}
 #: the largest capture read, its longest line, the longest R: (HID_MAX_DESCRIPTOR_SIZE) and E:
 #: (HID_MAX_BUFFER_SIZE) items, and the largest time (s) taken for one
@@ -41,6 +46,8 @@ MAX_LINE = 64 << 10
 MAX_ITEM = {"R": HID_MAX_DESCRIPTOR_SIZE, "E": HID_MAX_BUFFER_SIZE}
 MAX_TIME_S = 1e10
 _HEX_ONLY = re.compile(r"^(?:[0-9a-fA-F]{2}\s*)+$")
+#: the line types hid-replay reads; every other line is skipped (and counted)
+KNOWN_TAGS = frozenset("DRNPIE")
 
 
 @dataclass
@@ -56,6 +63,14 @@ class RecordedDevice:
     events: list[tuple[float, bytes]] = field(default_factory=list)
 
 
+class HidRecording(dict[int, RecordedDevice]):
+    """The devices of a capture by ``D:`` index, and the lines skipped: ``(line number, text)``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.skipped: list[tuple[int, str]] = []
+
+
 def _hex(tokens: list[str], path: str, n: int, what: str) -> bytes:
     try:
         return bytes(int(x, 16) for x in tokens)
@@ -63,8 +78,10 @@ def _hex(tokens: list[str], path: str, n: int, what: str) -> bytes:
         raise TraceError(f"{what}: not hex bytes: {' '.join(tokens)[:60]!r}", path=path, line=n) from None
 
 
-def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
+def parse_hid_recording(path: str) -> HidRecording:
     """Parse a hid-recorder file into its devices (by ``D:`` index, 0 when there is none).
+
+    Lines hid-replay does not know are skipped, counted in ``.skipped`` and logged.
 
     Raises:
         TraceError: unreadable file, malformed line, or a length that does not match the bytes.
@@ -73,7 +90,7 @@ def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
         text = read_text_bounded(path, MAX_TRACE_BYTES, MAX_LINE)
     except (OSError, InputLimitError, UnicodeDecodeError) as exc:
         raise TraceError(f"cannot read hid-recorder file: {exc}", path=path) from None
-    devices: dict[int, RecordedDevice] = {}
+    devices = HidRecording()
     cur = devices.setdefault(0, RecordedDevice(0))
     # an R:/E: item being assembled across wrapped lines: [tag, line, declared length, bytes, time]
     pending: list[Any] | None = None
@@ -96,16 +113,16 @@ def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
 
     for n, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
-        if not line or line.startswith("#"):
+        if not line:
             continue
         if pending is not None and _HEX_ONLY.match(line):
             pending[3] += _hex(line.split(), path, n, pending[0])
             continue
-        close()
         tag, sep, rest = line.partition(":")
-        if not sep or len(tag) != 1:
-            raise TraceError(f"not a hid-recorder line (expected 'X: ...' with X one of D R N P I E): {line[:60]!r}",
-                             path=path, line=n)
+        if not sep or tag not in KNOWN_TAGS:
+            devices.skipped.append((n, line[:80]))
+            continue
+        close()
         parts = rest.split()
         try:
             if tag == "D":
@@ -124,14 +141,24 @@ def parse_hid_recording(path: str) -> dict[int, RecordedDevice]:
                 if not abs(t) < MAX_TIME_S:  # nan, inf and 1e300 too
                     raise ValueError(t)
                 pending = ["E", n, int(parts[1]), bytearray(_hex(parts[2:], path, n, "E")), t]
-            else:
-                raise TraceError(f"unknown line type {tag!r} (expected D R N P I E)", path=path, line=n)
         except (ValueError, IndexError):
             raise TraceError(f"malformed {tag}: line {line[:60]!r}", path=path, line=n) from None
     close()
+    _log_skipped(path, devices.skipped)
     if len(devices) > 1 and not devices[0].rdesc and not devices[0].events:
         del devices[0]
     return devices
+
+
+def _log_skipped(path: str, skipped: list[tuple[int, str]]) -> None:
+    comments = sum(1 for _, text in skipped if text.startswith("#"))
+    other = [(n, text) for n, text in skipped if not text.startswith("#")]
+    if comments:
+        log.info("%s: skipped %d comment line(s)", path, comments)
+    if other:
+        n, text = other[0]
+        log.warning("%s: skipped %d line(s) that are not hid-recorder items (D R N P I E), as hid-replay does;"
+                    " the first, line %d: %r", path, len(other), n, text)
 
 
 class HidRecorderResponder(HidResponder):
