@@ -43,11 +43,13 @@ from retarget.timeline import split_heading, yaw_quat
 from retarget.vmc import VmcEncoder
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterable, Sequence
+    from collections.abc import Callable, Iterable, Iterator, Sequence
+
+    from capture.clock import Clock
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PuppetFollower", "PuppetRun", "VmcSender", "parse_host_port", "probe_writable", "write_outputs"]
+__all__ = ["PuppetFollower", "PuppetRun", "VmcSender", "paced", "parse_host_port", "probe_writable", "write_outputs"]
 
 
 # ------------------------------------------------------------------------------------------------ outputs
@@ -203,6 +205,19 @@ class VmcSender:
 
     def close(self) -> None:
         self.sock.close()
+
+
+def paced(inputs: Iterable[PhoneInput], clock: Clock) -> Iterator[PhoneInput]:
+    """``inputs`` at their own pace, as a player sends them: each one when ``clock`` has reached the take's
+    start plus its time since the first (a late one goes at once; no frame is skipped)."""
+    start_ns: int | None = None
+    t0 = 0.0
+    for inp in inputs:
+        if start_ns is None:
+            start_ns, t0 = clock.now_ns(), inp.t
+        else:
+            clock.sleep_until_ns(start_ns + round((inp.t - t0) * 1e9))
+        yield inp
 
 
 class PuppetRun:

@@ -82,18 +82,21 @@ def test_rate_sets_the_frames_and_the_bvh_fps(tmp_path, capsys):
     assert clip.n_frames == 181 and clip.fps == pytest.approx(30.0)
 
 
-def test_vmc_to_a_real_udp_receiver(tmp_path, capsys):
+@pytest.mark.parametrize("fast", [False, True])
+def test_vmc_to_a_real_udp_receiver(tmp_path, capsys, fast):
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
     sock.bind(("127.0.0.1", 0))
     sock.settimeout(0.05)
     got: list[bytes] = []
+    arrived: list[float] = []
     done = threading.Event()
 
     def receive() -> None:
         while not done.is_set():
             try:
                 got.append(sock.recv(65536))
+                arrived.append(time.monotonic())
             except TimeoutError:
                 continue
 
@@ -102,7 +105,7 @@ def test_vmc_to_a_real_udp_receiver(tmp_path, capsys):
     try:
         port = sock.getsockname()[1]
         code, out, err = run(capsys, "puppet", "--input", walk_csv(tmp_path / "walk.csv"), "--rate", "30",
-                             "--vmc", f"127.0.0.1:{port}")
+                             "--vmc", f"127.0.0.1:{port}", *(["--fast"] if fast else []))
         deadline = time.monotonic() + DEADLINE_S  # the command said how many it sent: wait for those
         while len(got) < 181 and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -118,11 +121,13 @@ def test_vmc_to_a_real_udp_receiver(tmp_path, capsys):
     names = [sk.unity_names[n] for n in sk.names if n in sk.unity_names]
     assert all(list(f.bones) == names and f.ok == 1 for f in frames)
     assert [f.t for f in frames] == pytest.approx(np.arange(181) / 30.0, abs=1e-5)
+    if not fast:  # paced as a player sends them: 6 s of frames take at least 6 s (however busy the machine)
+        assert arrived[-1] - arrived[0] >= 6.0 - 0.05
 
 
 def test_vmc_that_cannot_send_is_counted_and_reported_once(tmp_path, capsys):
     code, out, err = run(capsys, "puppet", "--input", walk_csv(tmp_path / "walk.csv", fs=10.0), "--rate", "10",
-                         "--vmc", "255.255.255.255:39539")
+                         "--vmc", "255.255.255.255:39539", "--fast")
     assert code == 1
     assert "VMC: 0 bundle(s) sent to 255.255.255.255:39539 over UDP, 61 send error(s) (first: " in out
     assert one_line(err).startswith("perfcap: error: no VMC bundle could be sent to 255.255.255.255:39539")
@@ -208,6 +213,7 @@ def test_malformed_trajectories(tmp_path, capsys, content, message):
     (["--input", "{walk}", "--timeline", "{tmp}"], "--timeline {tmp} is a directory"),
     (["--input", "{walk}", "--duration", "3"], "--duration is for --phone"),
     (["--input", "{walk}", "--device", "phone"], "--device chooses the phone of a --session"),
+    (["--input", "{walk}", "--fast"], "--fast is for --vmc from an --input or a --session"),
     (["--session", "{untouched}", "--device", "pen"], ("has no attitude stream of a device 'pen'; phones with one:"
                                                       " phone")),
     (["--phone", "nonsense"], "nonsense"),

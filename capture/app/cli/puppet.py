@@ -18,14 +18,17 @@ from capture.app.cli.common import (
     output_file,
     stop_on_signals,
 )
+from capture.clock import MONOTONIC
 from capture.errors import ConfigError
 
 if TYPE_CHECKING:
     import argparse
+    from collections.abc import Iterable
 
     from capture.app.cli.common import Subcommands
     from capture.app.puppet_run import PuppetRun
     from devices import DeviceSpec
+    from retarget.puppet import PhoneInput
 
 
 def add_parser(sub: Subcommands) -> None:
@@ -46,7 +49,10 @@ def add_parser(sub: Subcommands) -> None:
     pp.add_argument("--device", metavar="NAME", help="with --session: the phone (default: the only device with an"
                     " attitude stream)")
     pp.add_argument("-o", "--output", metavar="OUT.bvh", help="write the performance as BVH (fps = --rate)")
-    pp.add_argument("--vmc", metavar="HOST:PORT", help="send one VMC (OSC) bundle per frame over UDP")
+    pp.add_argument("--vmc", metavar="HOST:PORT", help="send one VMC (OSC) bundle per frame over UDP (from a"
+                    " --input or --session at the frame rate, as a player would)")
+    pp.add_argument("--fast", action="store_true", help="with --vmc and --input or --session: send every frame at"
+                    " once instead of at the frame rate")
     pp.add_argument("--timeline", metavar="TIMELINE.json", help='write the state changes as [{"t": s, "state":'
                     ' name}, ...]')
     pp.add_argument("--rate", type=float, default=60.0, metavar="HZ", help="frame rate (default 60)")
@@ -70,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.phone:
             raise ConfigError("--duration is for --phone (a trajectory or a session is driven to its end)")
         check_duration(args.duration)
+    if args.fast and not (args.vmc and not args.phone):
+        raise ConfigError("--fast is for --vmc from an --input or a --session (a live phone sets its own pace)")
     if args.device is not None and not args.session:
         raise ConfigError("--device chooses the phone of a --session")
     input_file(args.input, "--input")
@@ -111,7 +119,10 @@ def run(args: argparse.Namespace) -> int:
             source, code, notes = _live(args, spec, performance)
         elif track is not None:
             source = track.source
-            for inp in track.resample(rate):
+            frames: Iterable[PhoneInput] = track.resample(rate)
+            if vmc is not None and not args.fast:    # a receiver expects frames at their rate, not a burst
+                frames = puppet_run.paced(frames, MONOTONIC)
+            for inp in frames:
                 try:
                     performance.step(inp)
                 except ValueError as exc:   # an input the retargeter cannot follow: bad input, one line

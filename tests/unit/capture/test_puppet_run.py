@@ -29,8 +29,9 @@ from capture.app.puppet_input import (
     touch_changes,
     unknown_touch_phases,
 )
-from capture.app.puppet_run import PuppetFollower, PuppetRun, VmcSender, parse_host_port, probe_writable
+from capture.app.puppet_run import PuppetFollower, PuppetRun, VmcSender, paced, parse_host_port, probe_writable
 from capture.bus import Overflow, SampleBus
+from capture.clock import ManualClock
 from capture.errors import ConfigError
 from capture.quat import quat_conj, quat_mul, quat_rotate
 from capture.sample import (
@@ -696,3 +697,29 @@ def test_follower_as_a_processor_puts_the_pose_stream_on_the_bus(untouched_sessi
     t = np.array([s.t_bus_ns for s in keep.items])
     np.testing.assert_allclose(np.diff(t), 1e9 / 60, atol=1)
     assert [s.seq for s in keep.items] == list(range(len(keep.items)))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_paced_frames_go_at_their_own_times_and_none_is_skipped(seed):
+    """``paced`` on a manual clock: each frame leaves when the clock has reached the start plus its time since
+    the first (rates, offsets and take lengths drawn at random; a frame already late goes at once)."""
+    rng = np.random.default_rng(seed)
+    rate, t0, n = float(rng.uniform(10, 240)), float(rng.uniform(-5, 5)), int(rng.integers(1, 400))
+    frames = [PhoneInput(t0 + i / rate, (1.0, 0.0, 0.0, 0.0), True, None) for i in range(n)]
+    clock = ManualClock(start_ns=int(rng.integers(1, 10**12)))
+    start = clock.now_ns()
+    late_at = int(rng.integers(0, n))
+    sent: list[tuple[float, int]] = []
+    for i, f in enumerate(paced(frames, clock)):
+        sent.append((f.t, clock.now_ns()))
+        if i == late_at:
+            clock.advance(int(rng.uniform(0, 0.5) * 1e9))  # the sender fell behind here
+    assert [t for t, _ in sent] == [f.t for f in frames]
+    behind = 0
+    for i, (t, at) in enumerate(sent):
+        due = start + round((t - t0) * 1e9)
+        assert at >= due  # never early
+        if i <= late_at:
+            assert at == due
+        behind = max(behind, at - due)
+    assert behind <= 0.5e9  # late ones catch up: no more behind than the stall
