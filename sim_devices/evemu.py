@@ -1,4 +1,5 @@
-"""evemu recordings (evdev level): the device description (``.desc``) and the events (``.events``).
+"""evemu recordings (evdev level): the device description (``.desc``) and the events (``.events``),
+or both in one file as ``evemu-record`` writes them (``description_for`` finds the description).
 
 ``.desc``: ``N:`` name, ``I: bus vendor product version`` (hex), ``P:``/``B:`` bitmasks,
 ``A: code min max fuzz flat [res]``; ``.events``: ``E: sec.usec type code value`` (type and code
@@ -143,3 +144,22 @@ def desc_for(events_path: str) -> str | None:
         if nm.endswith(".desc") and base.startswith(nm[:-5]) and (best is None or len(nm) > len(best)):
             best = nm
     return os.path.join(folder, best) if best else None
+
+
+def has_description(dev: EvemuDevice) -> bool:
+    """Whether a parsed file held a device description (``N:``, ``I:`` or ``A:`` lines)."""
+    return bool(dev.name or dev.vendor or dev.product or dev.bus or dev.absinfo)
+
+
+def description_for(events_path: str) -> EvemuDevice | None:
+    """The device description of a recording: its own ``N:``/``I:``/``A:`` lines when it holds them
+    (a single-file ``evemu-record`` recording), else the ``.desc`` beside it (``desc_for``), else None.
+
+    Raises:
+        TraceError: an unreadable file or a malformed description line.
+    """
+    own = parse_desc(events_path)
+    if has_description(own):
+        return own
+    desc = desc_for(events_path)
+    return parse_desc(desc) if desc else None

@@ -3,7 +3,7 @@
 Each has a standard-conformant report descriptor (``devices.hid.descriptor.STANDARD_DESCRIPTORS``)
 and encodes its input reports from field values through ``ReportLayout.encode`` (the inverse of
 the decoder the ``hid`` device kind uses). The values come from seeded synthetic motion, or with
-``evemu=PATH`` from an evemu recording (``.events``, its ``.desc`` found beside it): one report per
+``evemu=PATH`` from an evemu recording (single-file, or ``.events`` with its ``.desc`` beside it): one report per
 SYN_REPORT frame at the recorded time; absolute axes are mapped by their fraction of the evdev
 range onto the descriptor's logical range, relative axes and keys one to one.
 
@@ -67,7 +67,7 @@ class _LayoutResponder(HidResponder):
     kind = "hid"
     vid = 0x1209  # pid.codes open-source vendor ID
     options: ClassVar[dict[str, Option]] = {
-        "evemu": Option(str, "", "replay this evemu .events recording (its .desc beside it)"),
+        "evemu": Option(str, "", "replay this evemu recording (single-file, or .events with its .desc beside it)"),
         "report_rate": Option(float, 0.0, "report rate of the synthetic motion, Hz (0 = the device's default)", min=0.0,
                        max=8000.0),
     }
@@ -82,10 +82,10 @@ class _LayoutResponder(HidResponder):
         self.evemu_path = trace_path(path) if path else ""
         self.evemu_dev: evemu.EvemuDevice | None = None
         if path:
-            desc = evemu.desc_for(self.evemu_path)
-            if desc is None:
-                raise ConfigError(f"simhid://{self.profile}: no .desc file beside {self.evemu_path}")
-            self.evemu_dev = evemu.parse_desc(desc)
+            self.evemu_dev = evemu.description_for(self.evemu_path)
+            if self.evemu_dev is None:
+                raise ConfigError(f"simhid://{self.profile}: {self.evemu_path} holds no device description"
+                                  " (N:/I:/A: lines) and there is no .desc file beside it")
 
     def report_descriptor(self) -> bytes:
         return self.rdesc

@@ -11,8 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from capture.errors import EndOfStream
+from capture.errors import ConfigError, EndOfStream
+from capture.sample import Sample
 from devices import open_device
+from sim_devices import evemu
 from sim_devices.hid_recorder import KNOWN_TAGS, parse_hid_recording
 
 TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "traces"
@@ -71,3 +73,67 @@ def test_every_real_hid_recorder_trace_replays(src):
     finally:
         dev.close()
     assert n >= len(parse_hid_recording(str(src))[0].events)
+
+
+# -- evemu: single-file recordings -----------------------------------------------------------------------
+EVEMU_EVENTS = sorted(TRACES.rglob("*.events"))
+EVEMU_SINGLE = sorted(TRACES.rglob("*.evemu"))
+#: the simulated device each real evemu recording replays through (by file-name prefix)
+SIM_FOR = {"saitek": "mouse", "wacom_intuos4": "pen", "wacom_isdv4": "touch"}
+
+
+def _sim(path: Path) -> str | None:
+    return next((k for p, k in SIM_FOR.items() if path.name.startswith(p)), None)
+
+
+def _replay(url: str) -> list[tuple[str, tuple[float, ...]]]:
+    dev = open_device(url)
+    dev.open()
+    out = []
+    try:
+        for _ in range(1_000_000):
+            out += [(s.stream, tuple(float(v) for v in s.values)) for s in dev.poll(0.1) if isinstance(s, Sample)]
+    except EndOfStream:
+        pass
+    finally:
+        dev.close()
+    return out
+
+
+@pytest.mark.parametrize("src", EVEMU_EVENTS, ids=lambda p: p.name)
+def test_real_evemu_trace_as_a_single_file_decodes_as_the_two_file_form(src, tmp_path):
+    desc = evemu.desc_for(str(src))
+    assert desc is not None, f"no .desc beside {src}"
+    single = tmp_path / (src.stem + ".evemu")  # no .desc beside it in tmp_path
+    single.write_text(Path(desc).read_text() + src.read_text())
+    assert evemu.description_for(str(single)) == evemu.parse_desc(desc)
+    assert evemu.description_for(str(src)) == evemu.parse_desc(desc)
+    frames = evemu.parse_events(str(src))
+    assert frames and evemu.parse_events(str(single)) == frames
+    kind = _sim(src)
+    if kind:
+        two = _replay(f"hid@simhid://{kind}?realtime=false&evemu={src}")
+        assert two and _replay(f"hid@simhid://{kind}?realtime=false&evemu={single}") == two
+
+
+@pytest.mark.parametrize("src", EVEMU_SINGLE, ids=lambda p: p.name)
+def test_real_single_file_evemu_recording_holds_its_description_and_events(src, tmp_path):
+    dev = evemu.description_for(str(src))
+    assert dev is not None and dev.name and dev.vendor and dev.absinfo
+    frames = evemu.parse_events(str(src))
+    assert frames
+    # split into the two-file form: the same description and the same events
+    text = src.read_text().splitlines()
+    (tmp_path / "dev.desc").write_text("\n".join(x for x in text if not x.startswith("E:")) + "\n")
+    (tmp_path / "dev.events").write_text("\n".join(x for x in text if x.startswith("E:")) + "\n")
+    assert evemu.description_for(str(tmp_path / "dev.events")) == dev
+    assert evemu.parse_events(str(tmp_path / "dev.events")) == frames
+    # it replays as a pointer device would (its buttons and axes the mouse does not have are ignored)
+    assert _replay(f"hid@simhid://mouse?realtime=false&evemu={src}")
+
+
+def test_an_events_file_without_any_description_is_a_clear_error(tmp_path):
+    bare = tmp_path / "bare.events"
+    bare.write_text("E: 0.000000 0002 0000 1\nE: 0.000000 0000 0000 0\n")
+    with pytest.raises(ConfigError, match="holds no device description"):
+        open_device(f"hid@simhid://mouse?realtime=false&evemu={bare}")
