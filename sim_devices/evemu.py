@@ -121,6 +121,8 @@ def parse_events(path: str) -> list[Frame]:
             if not abs(t) < MAX_TIME_S:  # nan, inf and 1e300 too
                 raise ValueError(f"time {parts[0]} is not a time in seconds")
             typ, code, value = int(parts[1], 16), int(parts[2], 16), int(parts[3])
+            if not -(1 << 31) <= value < 1 << 31:
+                raise ValueError(f"value {value} is not a 32-bit evdev value")
         except ValueError as exc:
             raise TraceError(f"malformed event line {line!r} ({exc})", path=path, line=n) from None
         if typ == EV_SYN and code == SYN_REPORT:

@@ -61,6 +61,10 @@ def _clamp(f: FieldLayout, v: float) -> int:
     return int(min(max(round(v), f.logical_min), f.logical_max))
 
 
+#: the most reports one evemu frame becomes when its wheel counts do not fit one report
+MAX_WHEEL_REPORTS = 256
+
+
 class _LayoutResponder(HidResponder):
     profile: ClassVar[str] = ""
     default_rate: ClassVar[float] = 100.0
@@ -152,19 +156,34 @@ class MouseResponder(_LayoutResponder):
     def encode(self, dx: int, dy: int, wheel: float, hwheel: float, buttons: int) -> bytes:
         """A report; wheel and hwheel in detents (sent in 1/multiplier steps)."""
         m = self.multiplier
+        return self._encode_counts(dx, dy, round(wheel * m), round(hwheel * m), buttons)
+
+    def _encode_counts(self, dx: int, dy: int, wheel: int, hwheel: int, buttons: int) -> bytes:
         vals: dict[int, int] = {self.fx.index: _clamp(self.fx, dx), self.fy.index: _clamp(self.fy, dy),
-                                self.fw.index: _clamp(self.fw, wheel * m), self.fh.index: _clamp(self.fh, hwheel * m)}
+                                self.fw.index: _clamp(self.fw, wheel), self.fh.index: _clamp(self.fh, hwheel)}
         for i, f in enumerate(self.fbuttons):
             vals[f.index] = (buttons >> i) & 1
         return self.report.encode(vals)
 
+    def _wheel_counts(self, state: dict[str, Any], key: str, units: int) -> int:
+        """Counts to send for ``units`` 1/120 detents (REL_*_HI_RES units): the part that does not
+        make a whole 1/multiplier step is carried to the next frame, so the sum is kept."""
+        total = state[key] + units * self.multiplier  # in 1/120 counts
+        counts = (total + 60) // 120
+        state[key] = total - counts * 120
+        return counts
+
     def _new_state(self) -> dict[str, Any]:
-        return {"buttons": 0}
+        return {"buttons": 0, "wheel_rest": 0, "hwheel_rest": 0}
 
     def _frame_reports(self, state: dict[str, Any], events: list[tuple[int, int, int]]) -> list[bytes]:
+        """One report for a frame, more when its wheel counts do not fit the wheel fields (the
+        wheels are never clipped: the sums of REL_WHEEL, or of REL_WHEEL_HI_RES when the frame has
+        it, are kept across the reports)."""
         dx = dy = 0
-        wheel = hwheel = 0.0
-        hi_w = hi_h = None
+        wheel = hwheel = 0
+        hi_w: int | None = None
+        hi_h: int | None = None
         for typ, code, value in events:
             if typ == evemu.EV_REL:
                 if code == evemu.REL_X:
@@ -176,14 +195,25 @@ class MouseResponder(_LayoutResponder):
                 elif code == evemu.REL_HWHEEL:
                     hwheel += value
                 elif code == evemu.REL_WHEEL_HI_RES:
-                    hi_w = (hi_w or 0.0) + value / 120.0
+                    hi_w = (hi_w or 0) + value
                 elif code == evemu.REL_HWHEEL_HI_RES:
-                    hi_h = (hi_h or 0.0) + value / 120.0
+                    hi_h = (hi_h or 0) + value
             elif typ == evemu.EV_KEY and 0x110 <= code < 0x110 + len(self.fbuttons):
                 bit = 1 << (code - 0x110)
                 state["buttons"] = state["buttons"] | bit if value else state["buttons"] & ~bit
-        return [self.encode(dx, dy, hi_w if hi_w is not None else wheel, hi_h if hi_h is not None else hwheel,
-                            state["buttons"])]
+        w = self._wheel_counts(state, "wheel_rest", hi_w if hi_w is not None else wheel * 120)
+        h = self._wheel_counts(state, "hwheel_rest", hi_h if hi_h is not None else hwheel * 120)
+        out = []
+        for _ in range(MAX_WHEEL_REPORTS):
+            cw, ch = _clamp(self.fw, w), _clamp(self.fh, h)
+            out.append(self._encode_counts(dx, dy, cw, ch, state["buttons"]))
+            w, h, dx, dy = w - cw, h - ch, 0, 0
+            if (not w and not h) or (not cw and not ch):
+                break
+        # what did not fit in MAX_WHEEL_REPORTS reports is sent with the next frame, not dropped
+        state["wheel_rest"] += w * 120
+        state["hwheel_rest"] += h * 120
+        return out
 
     def _synthetic(self) -> Iterator[tuple[float, bytes]]:
         rng = self.rng

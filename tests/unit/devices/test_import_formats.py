@@ -137,3 +137,65 @@ def test_an_events_file_without_any_description_is_a_clear_error(tmp_path):
     bare.write_text("E: 0.000000 0002 0000 1\nE: 0.000000 0000 0000 0\n")
     with pytest.raises(ConfigError, match="holds no device description"):
         open_device(f"hid@simhid://mouse?realtime=false&evemu={bare}")
+
+
+# -- wheels: never clipped, sums kept ----------------------------------------------------------------------
+def _mouse(multiplier_on: bool):
+    from sim_devices.hid_generic_sim import MouseResponder
+
+    m = MouseResponder({"seed": 1})
+    if multiplier_on:
+        m.set_feature(m.mult_report.encode({m.mult_field.index: 1}))
+    return m
+
+
+@pytest.mark.parametrize("multiplier_on", [False, True])
+@pytest.mark.parametrize("seed", range(10))
+def test_wheel_sums_of_rel_wheel_and_hi_res_sequences_are_kept_exactly(seed, multiplier_on):
+    rng = random.Random(f"h17-wheel-{seed}")
+    mouse = _mouse(multiplier_on)
+    m = mouse.multiplier
+    step = 120 // m  # REL_WHEEL_HI_RES units in one count
+    state = mouse._new_state()
+    want = {evemu.REL_WHEEL_HI_RES: 0, evemu.REL_HWHEEL_HI_RES: 0}
+    got = {evemu.REL_WHEEL_HI_RES: 0, evemu.REL_HWHEEL_HI_RES: 0}
+    for _ in range(300):
+        events = []
+        for lo, hi in ((evemu.REL_WHEEL, evemu.REL_WHEEL_HI_RES), (evemu.REL_HWHEEL, evemu.REL_HWHEEL_HI_RES)):
+            kind = rng.choice(["none", "detents", "hi_res", "big"])
+            if kind == "detents":
+                v = rng.randint(-5, 5)
+                events.append((evemu.EV_REL, lo, v))
+                want[hi] += 120 * v
+            elif kind in ("hi_res", "big"):
+                v = rng.randint(-20_000, 20_000) if kind == "big" else rng.randint(-300, 300)
+                events += [(evemu.EV_REL, hi, v), (evemu.EV_REL, lo, v // 120)]  # the kernel sends both
+                want[hi] += v
+        rng.shuffle(events)
+        for rep in mouse._frame_reports(state, events):
+            vals = mouse.report.decode(rep)
+            got[evemu.REL_WHEEL_HI_RES] += int(vals[mouse.fw.index]) * step
+            got[evemu.REL_HWHEEL_HI_RES] += int(vals[mouse.fh.index]) * step
+        for code, key in ((evemu.REL_WHEEL_HI_RES, "wheel_rest"), (evemu.REL_HWHEEL_HI_RES, "hwheel_rest")):
+            # what is sent plus what waits for a whole count is what was recorded, at every frame
+            assert got[code] + state[key] // m == want[code] and abs(state[key]) <= 60
+    # sums that are whole counts come out exactly
+    for code, key in ((evemu.REL_WHEEL_HI_RES, "wheel_rest"), (evemu.REL_HWHEEL_HI_RES, "hwheel_rest")):
+        if want[code] % step == 0:
+            assert got[code] == want[code] and state[key] == 0
+
+
+def test_a_wheel_spin_beyond_the_report_field_is_split_not_clipped():
+    mouse = _mouse(True)
+    state = mouse._new_state()
+    reps = mouse._frame_reports(state, [(evemu.EV_REL, evemu.REL_WHEEL_HI_RES, 120 * 100)])  # 800 counts
+    assert len(reps) > 1 and sum(int(mouse.report.decode(r)[mouse.fw.index]) for r in reps) == 800
+
+
+def test_an_evemu_value_beyond_32_bits_is_a_trace_error(tmp_path):
+    from capture.errors import TraceError
+
+    bad = tmp_path / "bad.events"
+    bad.write_text(f"E: 0.000000 0002 0008 {1 << 40}\nE: 0.000000 0000 0000 0\n")
+    with pytest.raises(TraceError, match="not a 32-bit evdev value"):
+        evemu.parse_events(str(bad))
