@@ -22,7 +22,7 @@ import abc
 import enum
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, NamedTuple, TypeVar
 
 import numpy as np
@@ -90,6 +90,9 @@ class DeviceStats:
     #: readings refused: an infinite value, or device ticks the stream's clock cannot carry
     bad_readings: int = 0
     last_seen_ns: int | None = None
+    #: what arrived but the device kind cannot decode into any reading, by what it was (a HID kind:
+    #: ``"report 0x05"``), each counted; the first of each kind is logged (``Device._undecoded``)
+    undecoded: dict[str, int] = field(default_factory=dict)
 
 
 #: the codec class of a device kind (``Device[WitMotionCodec]``), so ``device.codec`` has its type; a
@@ -281,6 +284,16 @@ class Device(abc.ABC, Generic[CodecT]):
             log.debug("traceback of device %s", self.name, exc_info=True)
         else:
             log.debug("device %s: %s", self.name, why)
+
+    def _undecoded(self, what: str) -> None:
+        """Count one ``what`` (e.g. ``"report 0x05"``) that arrived but gives no reading in
+        ``stats.undecoded``; log a warning the first time of each (of the first few kinds)."""
+        und = self.stats.undecoded
+        n = und.get(what, 0) + 1
+        und[what] = n
+        if n == 1 and len(und) <= _LOG_FIRST:
+            log.warning("device %s (%s): %s arrived but this device kind cannot decode it (no reading;"
+                        " each counted in undecoded)", self.name, self.kind, what)
 
     def _ticks_ok(self, si: int, tk: Any) -> bool:
         """Whether ``tk`` is an integer (not a bool) within stream ``si``'s clock."""
@@ -704,7 +717,8 @@ class Device(abc.ABC, Generic[CodecT]):
 
     def health(self) -> dict[str, Any]:
         """Counters for status displays and session summaries."""
-        return {"state": self.state.value, **self.stats.__dict__, **self.codec.stats.as_dict(),
+        return {"state": self.state.value, **self.stats.__dict__, "undecoded": dict(self.stats.undecoded),
+                **self.codec.stats.as_dict(),
                 "clock_resets": sum(s.resets for s in self._domains), "opens": self.opens,
                 "last_error": self.last_error}
 

@@ -117,6 +117,27 @@ class CaptureReport:
     not_saved: dict[str, int] = field(default_factory=dict)
     #: ``saved`` is exact (False: the file holds at least that)
     saved_exact: bool = True
+    #: devices that sent data but gave no sample in the take: name -> what they sent (one line)
+    silent: dict[str, str] = field(default_factory=dict)
+
+
+def silent_devices(devices: Sequence[Device], streams: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """The devices that received data in the take but published no sample on any of their streams,
+    each with a line saying what arrived and, when the kind counted them, what it could not decode."""
+    out: dict[str, str] = {}
+    for d in devices:
+        st = d.stats
+        if not st.chunks or any(streams.get(s.name, {}).get("samples", 0) for s in d.streams):
+            continue
+        why = f"sent {st.chunks} chunks ({st.bytes} bytes) but no sample was recorded from it"
+        if st.undecoded:
+            why += ": its kind cannot decode " + ", ".join(
+                f"{k} ({n}x)" for k, n in sorted(st.undecoded.items()))
+        else:
+            fs = d.codec.stats
+            why += f": {fs.frames} frames decoded, {fs.errors} errors, {st.readings} readings"
+        out[d.name] = why
+    return out
 
 
 CALIBRATION_KEY = "calibration.json"
@@ -458,10 +479,11 @@ class Capture:
         rec = self.recorder
         if rec is not None and rec.failed is not None:
             rec_err = str(rec.failed)
+        streams = self.stats.snapshot()
         self._report = CaptureReport(
             duration_s=elapsed,
             devices={d.name: d.health() for d in self.devices},
-            streams=self.stats.snapshot(),
+            streams=streams,
             subscribers=subs,
             output=self.output,
             recorder_error=rec_err,
@@ -469,5 +491,6 @@ class Capture:
             saved=None if rec is None else dict(rec.saved),
             not_saved={} if rec is None else rec.not_saved(),
             saved_exact=True if rec is None else rec.saved_exact,
+            silent=silent_devices(self.devices, streams),
         )
         return self._report

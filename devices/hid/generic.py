@@ -76,13 +76,33 @@ def _idx(fields: list[FieldLayout], usage: int) -> int | None:
     return None
 
 
-class GenericHid(HidDevice[HidReportCodec]):
-    """A HID mouse, pen or touch digitizer, decoded from its report descriptor."""
+class _HidCodec(HidReportCodec):
+    """``HidReportCodec`` that also tells its device the ID of each report its descriptor lacks (a
+    framing error, as before, and an undecoded report of the device, counted per ID)."""
+
+    def __init__(self, strict: bool = False) -> None:
+        super().__init__(strict)
+        self.on_unknown: Callable[[int], None] | None = None
+
+    def feed(self, data: bytes) -> list[Any]:
+        out = super().feed(data)
+        if not out and data and self.on_unknown is not None and self.layout is not None \
+                and self.layout.report_for(data) is None:
+            self.on_unknown(data[0])
+        return out
+
+
+class GenericHid(HidDevice[_HidCodec]):
+    """A HID mouse, pen or touch digitizer, decoded from its report descriptor.
+
+    A report whose ID the descriptor lacks, or that holds none of the mouse, pen or touch fields
+    published (a vendor report: a Wacom sends its pen in one), gives no reading: each is counted
+    per ID in ``stats.undecoded`` and the first of each ID logged."""
 
     kind = "hid"
     description = "HID mouse, pen or touch digitizer (descriptor-driven)"
-    codec_cls = HidReportCodec
-    codec: HidReportCodec
+    codec_cls = _HidCodec
+    codec: _HidCodec
     options: ClassVar[dict[str, Option]] = {
         "rdesc": Option(str, "", "the report descriptor as hex (else asked of the transport before open)"),
         "profile": Option(str, "auto", "which part to publish; with no descriptor known before open, the"
@@ -140,6 +160,7 @@ class GenericHid(HidDevice[HidReportCodec]):
         classes = self._classes(layout, source)
         self.layout = layout
         self.codec.set_layout(layout)
+        self.codec.on_unknown = self._undecoded_report
         self._multiplier = layout.wheel_multiplier()
         streams: list[StreamInfo] = []
         self._plans: dict[int | None, list[Plan]] = {}
@@ -323,7 +344,14 @@ class GenericHid(HidDevice[HidReportCodec]):
 
     def frame_to_readings(self, frame: Any) -> Iterable[Reading]:
         rep, values = frame
+        plans = self._plans.get(rep.report_id)
+        if not plans:
+            self._undecoded_report(rep.report_id)
+            return []
         out: list[Reading] = []
-        for plan in self._plans.get(rep.report_id, ()):
+        for plan in plans:
             out += plan(values)
         return out
+
+    def _undecoded_report(self, report_id: int | None) -> None:
+        self._undecoded("a report without ID" if report_id is None else f"report 0x{report_id:02x}")

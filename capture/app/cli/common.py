@@ -183,7 +183,8 @@ def print_capture(report: CaptureReport, as_json: bool) -> int:
         out(json.dumps({"duration_s": report.duration_s, "output": report.output, "streams": report.streams,
                         "devices": report.devices, "subscribers": report.subscribers,
                         "recorder_error": report.recorder_error, "events": report.events,
-                        "saved": report.saved, "not_saved": report.not_saved, "saved_exact": report.saved_exact},
+                        "saved": report.saved, "not_saved": report.not_saved, "saved_exact": report.saved_exact,
+                        "silent": report.silent},
                        default=str))
     else:
         rec_failed = report.recorder_error is not None and report.saved is not None
@@ -204,6 +205,8 @@ def print_capture(report: CaptureReport, as_json: bool) -> int:
                 extra.append(f"{d['reconnects']} reconnects")
             if d["clock_resets"]:
                 extra.append(f"{d['clock_resets']} clock resets")
+            if d.get("undecoded"):
+                extra.append("not decoded: " + ", ".join(f"{k} ({n}x)" for k, n in sorted(d["undecoded"].items())))
             out(f"  device {name}: {d['state']}, {d['chunks']} chunks, {d['bytes']} bytes"
                 + (f"; {'; '.join(extra)}" if extra else ""))
         for sub in report.subscribers:
@@ -225,6 +228,10 @@ def print_capture(report: CaptureReport, as_json: bool) -> int:
     if never:
         for n in never:
             err(f"perfcap: error: device {n} was never opened during the take: {report.devices[n]['last_error']}")
+        return EXIT_CHECK_FAILED
+    if report.silent:
+        for n, why in report.silent.items():
+            err(f"perfcap: error: device {n} {why}")
         return EXIT_CHECK_FAILED
     return 0
 
