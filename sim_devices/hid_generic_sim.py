@@ -4,8 +4,9 @@ Each has a standard-conformant report descriptor (``devices.hid.descriptor.STAND
 and encodes its input reports from field values through ``ReportLayout.encode`` (the inverse of
 the decoder the ``hid`` device kind uses). The values come from seeded synthetic motion, or with
 ``evemu=PATH`` from an evemu recording (single-file, or ``.events`` with its ``.desc`` beside it): one report per
-SYN_REPORT frame at the recorded time; absolute axes are mapped by their fraction of the evdev
-range onto the descriptor's logical range, relative axes and keys one to one.
+SYN_REPORT frame at the recorded time; absolute axes are mapped in physical units when the
+recording gives their resolution, else by their fraction of the evdev range onto the descriptor's
+logical range; relative axes and keys one to one, wheels with their sums kept.
 
 The mouse has a wheel Resolution Multiplier (feature report 2, 1 or 8 counts per detent): once the
 host sets it, wheel and AC Pan are sent in 1/8 detents.
@@ -95,9 +96,14 @@ class _LayoutResponder(HidResponder):
         return self.rdesc
 
     def _abs(self, code: int, value: int, f: FieldLayout) -> int:
+        """An evdev absolute value as the field's logical value: in the recording's physical units
+        when its ``A:`` line gives a resolution (counts per mm) and the field is a length, else by its
+        fraction of the evdev range (a resolution of 0 says the kernel does not know the size)."""
         info = self.evemu_dev.absinfo.get(code) if self.evemu_dev else None
         if info is None:
             return _clamp(f, value)
+        if info.resolution > 0 and f.unit == "m":
+            return f.to_logical((value - info.minimum) / info.resolution / 1000.0)
         return _frac_to_logical(f, info.fraction(value))
 
     def stream(self) -> Iterator[tuple[float, bytes]]:

@@ -199,3 +199,58 @@ def test_an_evemu_value_beyond_32_bits_is_a_trace_error(tmp_path):
     bad.write_text(f"E: 0.000000 0002 0008 {1 << 40}\nE: 0.000000 0000 0000 0\n")
     with pytest.raises(TraceError, match="not a 32-bit evdev value"):
         evemu.parse_events(str(bad))
+
+
+# -- evemu pens and touch: the recording's resolution gives the physical units -----------------------------
+#: the position codes of each kind and the smallest resolution (counts/mm) that keeps the real
+#: recordings' ranges inside the simulated device's active area
+_POSITION = {"pen": ((evemu.ABS_X, evemu.ABS_Y), 200),
+             "touch": ((evemu.ABS_MT_POSITION_X, evemu.ABS_MT_POSITION_Y), 11)}
+
+
+def _with_resolution(desc_text: str, res: dict[int, int]) -> str:
+    out = []
+    for line in desc_text.splitlines():
+        parts = line.split()
+        if parts[:1] == ["A:"] and int(parts[1], 16) in res:
+            parts = [*parts[:6], *(["0"] * (6 - len(parts))), str(res[int(parts[1], 16)])][:7]
+            out.append(" ".join(parts))
+        else:
+            out.append(line)
+    return "\n".join(out) + "\n"
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("src", [p for p in EVEMU_EVENTS if _sim(p) in _POSITION], ids=lambda p: p.name)
+def test_evemu_pen_and_touch_positions_use_the_recordings_resolution(src, seed, tmp_path):
+    kind = _sim(src)
+    assert kind
+    codes, rmin = _POSITION[kind]
+    rng = random.Random(f"h17-res-{seed}-{src.name}")
+    res = {c: rng.randint(rmin, 2 * rmin) for c in codes}
+    desc_path = evemu.desc_for(str(src))
+    assert desc_path
+    single = tmp_path / (src.stem + ".evemu")
+    single.write_text(_with_resolution(Path(desc_path).read_text(), res) + src.read_text())
+    desc = evemu.description_for(str(single))
+    assert desc and all(desc.absinfo[c].resolution == res[c] for c in codes)
+    dev = open_device(f"d=hid@simhid://{kind}?realtime=false&evemu={single}")
+    dev.open()
+    samples: list[Sample] = []
+    try:
+        for _ in range(1_000_000):
+            samples += [s for s in dev.poll(0.1) if isinstance(s, Sample)]
+    except EndOfStream:
+        pass
+    finally:
+        dev.close()
+    ch = dev.streams[0].channels
+    xs = [s.values[ch.index("x")] for s in samples if s.stream == f"d/{kind}"]
+    recorded = [v for fr in evemu.parse_events(str(src)) for t, c, v in fr.events
+                if t == evemu.EV_ABS and c == codes[0]]
+    info = desc.absinfo[codes[0]]
+    step = max(f.scale for f in dev.codec.layout.reports[next(iter(dev.codec.layout.reports))].fields
+               if f.unit == "m")  # one logical count of the simulated device, m
+    # the recorded extremes, in mm from the range's minimum at the recording's resolution
+    assert max(xs) == pytest.approx((max(recorded) - info.minimum) / info.resolution / 1000, abs=step)
+    assert min(xs) == pytest.approx((min(recorded) - info.minimum) / info.resolution / 1000, abs=step)
