@@ -20,7 +20,9 @@ the wrong sign on one term and its c does not follow from the fit's conditions; 
 * ``JumpTracker``: follows one jump from its trigger and applies the thesis's three invalid-jump rules
   with perfcap's thresholds: (1) it rises again after starting to descend (``v_y`` below -0.05 m/s starts the
   descent, above +0.05 m/s after that is a second rise); (2) it turns in the air (facing or travel heading
-  more than 30 degrees from the takeoff's); (3) it stops in the air (speed below 0.1 m/s for more than
+  more than 30 degrees from the takeoff's: measured from ``takeoff()``, so the turn on the ground during the
+  anticipation does not count, nor a facing that turns towards the travel direction at takeoff; a caller
+  without an anticipation marks the takeoff at the trigger); (3) it stops in the air (speed below 0.1 m/s for more than
   0.15 s while above the ground). A fitted ``a >= 0`` (no apex) is allowed only during the first 0.1 s
   after takeoff, and (perfcap's addition) a jump airborne for more than 1.5 s is invalid too.
 
@@ -266,6 +268,7 @@ class JumpTracker:
         self.arc: JumpArc | None = None
         self._t = self.t0
         self._stopped_since: float | None = None
+        self._anchor_pending = False             # takeoff() was called: the next update sets the anchors
 
     @property
     def valid(self) -> bool:
@@ -281,6 +284,9 @@ class JumpTracker:
         if not (math.isfinite(t) and t >= self.t0):
             raise ValueError(f"takeoff time {t!r} is before the trigger at {self.t0}")
         self.takeoff_time = float(t)
+        # the turn rule measures from the first frame in the air: during the anticipation the character
+        # turns on the ground to face its travel, and that is no turn in the air
+        self._anchor_pending = True
 
     def _fail(self, reason: InvalidJump, t: float) -> None:
         if self.invalid is None:
@@ -322,13 +328,22 @@ class JumpTracker:
                 self.phase = JumpPhase.DESCENDING
         elif vy > cfg.vy_hysteresis:
             self._fail(InvalidJump.RE_RISE, t)
-        # (2) turning in the air: facing, and travel direction while it is defined.
-        if abs(_wrap(heading - self.heading0)) > cfg.max_turn:
-            self._fail(InvalidJump.TURN, t)
+        # (2) turning in the air, from the takeoff: facing, and travel direction while it is defined.
         horiz = math.hypot(vx, vz)
-        if (self.travel_heading0 is not None and horiz >= cfg.min_travel_speed
-                and abs(_wrap(math.atan2(vx, vz) - self.travel_heading0)) > cfg.max_turn):
-            self._fail(InvalidJump.TURN, t)
+        if self._anchor_pending:
+            self._anchor_pending = False
+            self.heading0 = heading
+            self.travel_heading0 = math.atan2(vx, vz) if horiz >= cfg.min_travel_speed else None
+        elif self.takeoff_time is not None:
+            # facing: turned from the takeoff's, and (when it travels) away from its travel too, so a
+            # character still turning to face where it goes is not turning in the air
+            ref = self.travel_heading0
+            if abs(_wrap(heading - self.heading0)) > cfg.max_turn and (
+                    ref is None or abs(_wrap(heading - ref)) > cfg.max_turn):
+                self._fail(InvalidJump.TURN, t)
+            if (self.travel_heading0 is not None and horiz >= cfg.min_travel_speed
+                    and abs(_wrap(math.atan2(vx, vz) - self.travel_heading0)) > cfg.max_turn):
+                self._fail(InvalidJump.TURN, t)
         # (3) stopping in the air.
         speed = math.sqrt(vx * vx + vy * vy + vz * vz)
         if speed < cfg.stop_speed and height > cfg.contact_height:

@@ -140,7 +140,7 @@ def test_45_degree_turn_in_the_air_is_invalid(kind):
         frames = ballistic(1.5, 3.0, 0.5, turn_rate=math.radians(45) / 0.5)
     else:
         frames = [(t, p, v, math.radians(90) * t) for t, p, v, _ in ballistic(1.5, 3.0, 0.5)]
-    tr = run_tracker(frames)
+    tr = run_tracker(frames, takeoff=0.0)  # in the air from the first frame: no anticipation
     assert tr.invalid is InvalidJump.TURN
     assert tr.invalid_time is not None
     # It fired when the change passed 30 degrees, not before.
@@ -149,8 +149,24 @@ def test_45_degree_turn_in_the_air_is_invalid(kind):
 
 
 def test_turn_below_30_degrees_is_fine():
-    tr = run_tracker(ballistic(1.5, 3.0, 0.5, turn_rate=math.radians(25) / 0.5))
+    tr = run_tracker(ballistic(1.5, 3.0, 0.5, turn_rate=math.radians(25) / 0.5), takeoff=0.0)
     assert tr.valid
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_a_turn_on_the_ground_before_the_takeoff_is_no_turn_in_the_air(seed):
+    """During the anticipation the character turns (any amount) to face its travel; from the takeoff it flies
+    straight: valid. The same turn after the takeoff is invalid."""
+    rng = np.random.default_rng(seed)
+    turn = math.radians(float(rng.uniform(45, 180))) * float(rng.choice([-1.0, 1.0]))
+    travel = float(rng.uniform(-math.pi, math.pi))
+    ground = [(k / FS, (0.0, 0.0, 0.0), (1.2 * math.sin(travel), 0.0, 1.2 * math.cos(travel)),
+               travel - turn + turn * min(1.0, k / (0.15 * FS))) for k in range(round(0.2 * FS))]
+    air = [(0.2 + t, p, v, travel) for t, p, v, _ in ballistic(1.2, 3.0, 0.5, heading=travel)][1:]
+    assert run_tracker([*ground, *air], takeoff=0.2).valid
+    late = [(t, p, v, h + (turn if t > 0.35 else 0.0)) for t, p, v, h in [*ground, *air]]
+    late_tr = run_tracker(late, takeoff=0.2)
+    assert late_tr.invalid is InvalidJump.TURN and late_tr.invalid_time > 0.35
 
 
 def test_hover_is_invalid_after_015_s():

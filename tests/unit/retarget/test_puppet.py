@@ -232,3 +232,38 @@ def test_a_stick_racing_faster_than_any_gait_falls_limp(puppet: PuppetRetargeter
     limp = next(tr for f in fr for tr in f.transitions if tr.to_state is S.RAGDOLL)
     assert limp.reason == "too_fast"
     assert max(f.speedup for f in fr) <= 2.0 + 1e-12
+
+
+def jump_towards(direction_deg: float, speed: float, run_up: bool, turn_in_air: float = 0.0):
+    """The phone jumps (2.5 m/s up) towards ``direction_deg`` at ``speed`` m/s, from a standstill or after a
+    1 s run-up at that speed; its yaw stays 0 (the character turns to face its travel), or turns by
+    ``turn_in_air`` degrees once airborne."""
+    d = math.radians(direction_deg)
+    ux, uz = math.sin(d), math.cos(d)
+
+    def path(t: float):
+        lead = min(1.0, max(0.0, t - 0.5)) * speed if run_up else 0.0
+        if t < 1.5:
+            return (ux * lead, 1.3, uz * lead), 0.0, True
+        s = t - 1.5
+        h = lead + speed * s
+        y = 1.3 + 2.5 * s - 0.5 * 9.81 * s * s
+        return (ux * h, max(1.3, y), uz * h), turn_in_air * min(1.0, max(0.0, (s - 0.35) / 0.1)), True
+    return path
+
+
+@pytest.mark.parametrize("run_up", [False, True])
+@pytest.mark.parametrize("speed", [0.0, 0.8, 1.5, 3.0])
+def test_standing_walking_and_running_jumps_in_every_direction_land(puppet: PuppetRetargeter, speed: float,
+                                                                    run_up: bool) -> None:
+    for direction in range(0, 360, 45):
+        tl = timeline(run(puppet, jump_towards(direction, speed, run_up), 3.5))
+        assert S.AIRBORNE in tl and S.LANDING in tl and S.RAGDOLL not in tl, (direction, tl)
+
+
+@pytest.mark.parametrize("speed", [0.8, 3.0])
+def test_a_turn_in_the_air_still_falls_limp_in_every_direction(puppet: PuppetRetargeter, speed: float) -> None:
+    for direction in range(0, 360, 90):
+        fr = run(puppet, jump_towards(direction, speed, True, turn_in_air=60.0), 2.5)
+        limp = [tr.reason for f in fr for tr in f.transitions if tr.to_state is S.RAGDOLL]
+        assert limp[:1] == ["turn"], (direction, timeline(fr))
