@@ -10,7 +10,10 @@ as a Wacom's vendor pen report)."""
 from __future__ import annotations
 
 import json
+import os
 import random
+import threading
+import tty
 from pathlib import Path
 
 import pytest
@@ -113,3 +116,35 @@ def test_the_text_summary_lists_what_was_not_decoded(capsys, tmp_path):
                           "-d", f"m=hid@simhid://{_write(tmp_path / 'c.hid', rdesc, reps)}?realtime=false", "-o", out)
     assert code == 0
     assert "not decoded: report 0x09 (3x)" in stdout
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_serial_device_that_gets_only_noise_fails_the_take(capsys, tmp_path, seed):
+    """Not a HID kind: a WitMotion on a pty that gets only random bytes (no 0x55 header, so no
+    frame) says what it received (chunks, bytes, frames) and the take exits 1."""
+    rng = random.Random(seed)
+    noise = bytes(b for b in rng.randbytes(4096) if b != 0x55)
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    done = threading.Event()
+
+    def feed() -> None:
+        while not done.is_set():
+            os.write(master, noise[: rng.randint(16, len(noise))])
+            done.wait(0.02)
+
+    t = threading.Thread(target=feed, daemon=True)
+    t.start()
+    try:
+        code, stdout, err = run(capsys, "record", "-q", "--json", "--duration", "1.5",
+                                "-d", f"wt=witmotion@serial://{os.ttyname(slave)}", "-o", str(tmp_path / "t.mcap"))
+    finally:
+        done.set()
+        t.join(10)
+        os.close(master)
+        os.close(slave)
+    assert code == 1, err
+    rep = json.loads(stdout)
+    assert rep["devices"]["wt"]["bytes"] > 0 and set(rep["silent"]) == {"wt"}
+    line = next(ln for ln in err.splitlines() if ln.startswith("perfcap: error: device wt "))
+    assert "no sample was recorded" in line and "bytes" in line and "0 frames decoded" in line
