@@ -50,6 +50,7 @@ class ChunkInfo:
     start: int
     end: int          # end of the chunk and of its message indexes
     samples: int      # samples in its sample blocks
+    raw: int = 0      # raw device chunks in it
 
 
 def chunk_map(data: bytes) -> list[ChunkInfo]:
@@ -62,16 +63,17 @@ def chunk_map(data: bytes) -> list[ChunkInfo]:
     summary = reader.get_summary()
     assert summary is not None
     samples_ids = {c.id for c in summary.channels.values() if c.topic.startswith("/samples/")}
+    raw_ids = {c.id for c in summary.channels.values() if c.topic.startswith("/raw/")}
     out = []
     from mcap.data_stream import ReadDataStream
     from mcap.records import Chunk
     for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         body = data[ci.chunk_start_offset + 9:ci.chunk_start_offset + ci.chunk_length]
         ch = Chunk.read(ReadDataStream(io.BytesIO(body)))
-        n = sum(struct.unpack_from("<I", r.data)[0] for r in breakup_chunk(ch)
-                if isinstance(r, Message) and r.channel_id in samples_ids)
+        records = [r for r in breakup_chunk(ch) if isinstance(r, Message)]
+        n = sum(struct.unpack_from("<I", r.data)[0] for r in records if r.channel_id in samples_ids)
         out.append(ChunkInfo(ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length
-                             + ci.message_index_length, n))
+                             + ci.message_index_length, n, sum(r.channel_id in raw_ids for r in records)))
     return out
 
 
