@@ -8,7 +8,7 @@ Creating (``create_session_file``):
   directory swapped for a symbolic link between a check and the open cannot lead outside: there is
   no check-then-open, only opens that refuse links. ``..``, hidden names (a leading ``.``), NUL
   bytes and names not ending in ``.mcap`` are refused there.
-* The session is first written under a hidden temporary name (``.NAME.XXXXXXXX.part``, created with
+* The session is first written under a hidden temporary name (``.NAME.<random>.part``, created with
   ``O_CREAT | O_EXCL | O_NOFOLLOW``) and put in place with ``link`` (which fails if the name exists:
   creation stays exclusive) once its MCAP header and session metadata are on disk. A recorder
   killed while starting therefore leaves nothing under the name, never an empty file that blocks

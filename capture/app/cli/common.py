@@ -121,6 +121,18 @@ def settings(args: argparse.Namespace, serve: dict[str, Any] | None = None) -> S
     return load_config(given.get("config"), given.get("profile"), overrides)
 
 
+def _stat(path: str | None, what: str) -> os.stat_result | None:
+    """What ``path`` is, or None when it is not given or not there (left to its reader or maker)."""
+    if not path:
+        return None
+    try:
+        return os.stat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise ConfigError(f"{what} {shown(path)}: {exc.strerror or exc}") from None
+
+
 def input_file(path: str | None, what: str) -> None:
     """Refuse, before anything opens it, an input that is there but is no regular file: a FIFO or a
     device would block the read or never end (``/dev/zero``). A missing file or a folder is left to the
@@ -129,14 +141,9 @@ def input_file(path: str | None, what: str) -> None:
     Raises:
         ConfigError: ``path`` is a FIFO, a device or a socket, or cannot be looked at.
     """
-    if not path:
+    st = _stat(path, what)
+    if st is None:
         return
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return
-    except OSError as exc:
-        raise ConfigError(f"{what} {shown(path)}: {exc.strerror or exc}") from None
     if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
         kind = ("a FIFO" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
                 else "a device")
@@ -160,14 +167,9 @@ def folder_arg(path: str | None, what: str) -> None:
     Raises:
         ConfigError: saying why.
     """
-    if not path:
+    st = _stat(path, what)
+    if st is None:
         return
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return
-    except OSError as exc:
-        raise ConfigError(f"{what} {shown(path)}: {exc.strerror or exc}") from None
     if not stat.S_ISDIR(st.st_mode):
         raise ConfigError(f"{what} {path} is not a folder")
 
