@@ -75,6 +75,8 @@ class SessionRecorder(Subscriber):
         self._next_encode = now + self.encode_ns
         self._next_flush = now + self.flush_ns
         self.counts: dict[str, int] = {}
+        #: first and last sequence number written per stream (so a reader can tell a lost head or tail)
+        self.seq_span: dict[str, tuple[int, int]] = {}
         self.raw_chunks = 0
         #: samples per stream that came in (saved or not)
         self.received: dict[str, int] = {}
@@ -245,6 +247,10 @@ class SessionRecorder(Subscriber):
             batch = SampleBatch.concat(blocks)
             w.write_samples(batch, now)
             self.counts[stream] = self.counts.get(stream, 0) + len(batch)
+            if len(batch):
+                lo, hi = int(batch.seq.min()), int(batch.seq.max())
+                span = self.seq_span.get(stream)
+                self.seq_span[stream] = (lo, hi) if span is None else (min(span[0], lo), max(span[1], hi))
         ctrl, self._ctrl = self._ctrl, []
         for c in ctrl:
             if isinstance(c, ClockState):
@@ -268,7 +274,8 @@ class SessionRecorder(Subscriber):
                 st = self.subscription.stats()
                 self.summary_extra["recorder_dropped"] = st.dropped
                 self.summary_extra["recorder_max_pending"] = st.max_pending
-            self.writer.close({"samples": self.counts, "raw_chunks": self.raw_chunks,
+            self.writer.close({"samples": self.counts, "seq": {k: list(v) for k, v in self.seq_span.items()},
+                               "raw_chunks": self.raw_chunks,
                                "raw_bytes": self.writer.bytes_raw, **self.summary_extra})
             self._saved_now()
         except Exception as exc:
