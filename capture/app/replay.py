@@ -1,5 +1,5 @@
 """Whole-session replay: every recorded device back through its codec onto a bus, on one shared
-timeline, with the replayed samples checked against the recorded ones (``ReplayVerifier``), and the
+timeline, with the replayed samples checked against the recorded ones (``replay_check``), and the
 merged fast path that drives every device from one thread by recorded time (``run_merged``).
 
 Replay is reached through the ``replay://`` transport (which lives with the simulators); this
@@ -14,13 +14,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
-import numpy as np
-
 from capture.app.orchestrator import Capture, CaptureReport
+from capture.app.replay_check import ReplayVerifier, expected_from_summary
 from capture.bus import Overflow, Subscriber
 from capture.clock import MONOTONIC, Clock
 from capture.errors import CaptureError, ConfigError, EndOfStream, SessionError
-from capture.sample import DeviceEvent, EventKind, Sample, SampleBatch
+from capture.sample import DeviceEvent, EventKind
 from capture.session import SessionReader
 from devices import Device, DeviceState
 from devices.transports.base import BatchSource, RecordedTimeline
@@ -32,146 +31,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-class ReplayVerifier(Subscriber):
-    """Compares replayed samples with the recorded ones, stream by stream, on the first pass.
-
-    Samples are matched on their sequence numbers, not their positions: a recorded block that was
-    lost to damage leaves replayed samples with no recorded counterpart (``not_recorded``), a lost
-    raw block leaves recorded samples that are never replayed (``missing``), and neither shifts the
-    comparison of the rest. When a hole in the raw data renumbers the replayed samples after it,
-    the numbering is re-anchored on the recorded host time. Matched samples must be bit-identical
-    in values, sequence number, device time and bus time; host times too when the replay keeps
-    recorded stamps. Batches are compared as whole columns.
-    """
-
-    accepts = frozenset({Sample, SampleBatch})
-    #: how many missing or not-recorded runs are listed per stream
-    MAX_RANGES = 20
-
-    def __init__(self, recorded: dict[str, SampleBatch], check_host_times: bool = True) -> None:
-        self.recorded = recorded
-        self.check_host = check_host_times
-        self.compared: dict[str, int] = dict.fromkeys(recorded, 0)
-        self.mismatches: dict[str, int] = dict.fromkeys(recorded, 0)
-        self.first_mismatch: dict[str, str] = {}
-        self.unexpected: dict[str, int] = {}
-        self._bits = {s: np.ascontiguousarray(b.values).view(np.int64) for s, b in recorded.items()}
-        self._matched = {s: np.zeros(len(b), bool) for s, b in recorded.items()}
-        self._order = {s: np.argsort(b.seq, kind="stable") for s, b in recorded.items()}
-        self._sorted_seq = {s: b.seq[self._order[s]] for s, b in recorded.items()}
-        self._offset: dict[str, int] = dict.fromkeys(recorded, 0)
-        self._done: set[str] = set()
-        self._extra: dict[str, list[tuple[int, int, int, int]]] = {s: [] for s in recorded}
-        self.not_recorded: dict[str, int] = dict.fromkeys(recorded, 0)
-        #: samples matched only after re-anchoring (their replayed numbers differ from the recorded)
-        self.renumbered: dict[str, int] = dict.fromkeys(recorded, 0)
-
-    def _lookup(self, stream: str, seq: np.ndarray) -> np.ndarray:
-        """Recorded index of each replayed seq (after the offset), -1 where there is none."""
-        ss = self._sorted_seq[stream]
-        key = seq + self._offset[stream]
-        pos = np.searchsorted(ss, key)
-        pos_c = np.minimum(pos, max(len(ss) - 1, 0))
-        found = (pos < len(ss)) & (ss[pos_c] == key) if len(ss) else np.zeros(len(seq), bool)
-        return np.where(found, self._order[stream][pos_c] if len(ss) else -1, -1)
-
-    def _reanchor(self, stream: str, item: SampleBatch) -> None:
-        """After a hole in the raw data the replayed numbering may be shifted: find the recorded
-        sample with the first replayed sample's host time and number from there."""
-        rec = self.recorded[stream]
-        j = int(np.searchsorted(rec.t_host_ns, item.t_host_ns[0]))
-        if j < len(rec) and rec.t_host_ns[j] == item.t_host_ns[0] and not self._matched[stream][j]:
-            self._offset[stream] = int(rec.seq[j]) - int(item.seq[0])
-
-    def on_item(self, item: Any) -> None:
-        rec = self.recorded.get(item.stream)
-        if rec is None:
-            n = 1 if type(item) is Sample else len(item)
-            self.unexpected[item.stream] = self.unexpected.get(item.stream, 0) + n
-            return
-        s = item.stream
-        if s in self._done or not len(rec):
-            return  # later loop passes, or readings past a truncated recording's last block
-        if type(item) is Sample:
-            item = SampleBatch.from_samples(s, [item], rec.values.shape[1] if rec.values.ndim == 2 else 0)
-        if not len(item):
-            return
-        idx = self._lookup(s, item.seq)
-        if idx[0] < 0 or (self.check_host and rec.t_host_ns[idx[0]] != item.t_host_ns[0]):
-            self._reanchor(s, item)
-            idx = self._lookup(s, item.seq)
-        have = idx >= 0
-        have[have] &= ~self._matched[s][idx[have]]   # a recorded sample is matched once
-        # past the recording's last sample: a truncated recording's raw data outlives its blocks
-        extra = np.flatnonzero(~have & (item.seq + self._offset[s] <= self._sorted_seq[s][-1]))
-        if extra.size:
-            self.not_recorded[s] += int(extra.size)
-            self._note_runs(self._extra[s], item.seq[extra], item.t_bus_ns[extra])
-        if not have.any():
-            return
-        k = np.flatnonzero(have)
-        ri = idx[k]
-        self._matched[s][ri] = True
-        self.compared[s] += int(k.size)
-        ok = (item.t_device_ns[k] == rec.t_device_ns[ri]) & (item.t_bus_ns[k] == rec.t_bus_ns[ri])
-        if self._offset[s]:
-            self.renumbered[s] += int(k.size)
-        if self.check_host:
-            ok &= item.t_host_ns[k] == rec.t_host_ns[ri]
-        vals = np.ascontiguousarray(item.values[k])
-        if vals.shape[1:] != rec.values.shape[1:]:
-            ok[:] = False
-        else:
-            ok &= np.all(vals.view(np.int64) == self._bits[s][ri], axis=1)
-        bad = np.flatnonzero(~ok)
-        if bad.size:
-            self.mismatches[s] += int(bad.size)
-            if s not in self.first_mismatch:
-                j, i = int(k[bad[0]]), int(ri[bad[0]])
-                self.first_mismatch[s] = (
-                    f"seq {int(item.seq[j])}: replayed host={int(item.t_host_ns[j])} device={int(item.t_device_ns[j])} "
-                    f"bus={int(item.t_bus_ns[j])} values={tuple(item.values[j].tolist())} but recorded "
-                    f"seq={int(rec.seq[i])} host={int(rec.t_host_ns[i])} device={int(rec.t_device_ns[i])} "
-                    f"bus={int(rec.t_bus_ns[i])} values={tuple(rec.values[i].tolist())}")
-        if self._matched[s][-1]:
-            self._done.add(s)   # the first pass reached the recording's end
-
-    def _note_runs(self, runs: list[tuple[int, int, int, int]], seq: np.ndarray, bus: np.ndarray) -> None:
-        """Add (first seq, last seq, first bus ns, last bus ns) runs of consecutive seqs."""
-        cuts = np.flatnonzero(np.diff(seq) != 1) + 1
-        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(seq)], strict=True):
-            if runs and runs[-1][1] + 1 == int(seq[a]):
-                runs[-1] = (runs[-1][0], int(seq[b - 1]), runs[-1][2], int(bus[b - 1]))
-            elif len(runs) < self.MAX_RANGES:
-                runs.append((int(seq[a]), int(seq[b - 1]), int(bus[a]), int(bus[b - 1])))
-
-    def result(self) -> dict[str, Any]:
-        per = {}
-        for s, b in self.recorded.items():
-            miss = np.flatnonzero(~self._matched[s])
-            runs: list[tuple[int, int, int, int]] = []
-            if miss.size:
-                order = miss[np.argsort(b.seq[miss], kind="stable")]
-                self._note_runs(runs, b.seq[order], b.t_bus_ns[order])
-            ss = self._sorted_seq[s]
-            holes = np.flatnonzero(np.diff(ss) > 1)
-            bus = b.t_bus_ns[self._order[s]]
-            per[s] = {"recorded": len(b),
-                      "absent": int((np.diff(ss)[holes] - 1).sum()) if holes.size else 0,
-                      "absent_ranges": [{"seq": [int(ss[h]) + 1, int(ss[h + 1]) - 1],
-                                         "bus_ns": [int(bus[h]), int(bus[h + 1])]}
-                                        for h in holes[:self.MAX_RANGES]],
-                      "compared": self.compared[s], "mismatches": self.mismatches[s],
-                      "missing": int(miss.size), "not_recorded": self.not_recorded[s],
-                      "renumbered": self.renumbered[s],
-                      "missing_ranges": [{"seq": [r[0], r[1]], "bus_ns": [r[2], r[3]]} for r in runs],
-                      "not_recorded_ranges": [{"seq": [r[0], r[1]], "bus_ns": [r[2], r[3]]}
-                                              for r in self._extra[s]]}
-        ok = all(v["mismatches"] == 0 and v["missing"] == 0 and v["not_recorded"] == 0 and v["renumbered"] == 0
-                 for v in per.values()) and not self.unexpected
-        return {"equal": ok, "streams": per, "unexpected": self.unexpected, "first_mismatch": self.first_mismatch}
-
-
 @dataclass
 class ReplayReport:
     capture: CaptureReport
@@ -180,36 +39,6 @@ class ReplayReport:
     recorded_span_s: float = 0.0
     replayed_span_s: float = 0.0
     stopped_early: bool = False
-
-
-def describe_verification(ver: dict[str, Any], stopped_early: bool = False) -> list[str]:
-    """The lines ``perfcap replay`` prints for a verification result: the damage a damaged session
-    showed (per stream, how many samples and which seq and bus-time ranges), then either that every
-    compared sample is equal or where they differ."""
-    lines = []
-    if ver.get("damaged"):
-        lines.append("  DAMAGED session (skipped: " + ", ".join(f"{n} x {w}" for w, n in sorted(ver["damaged"].items()))
-                     + "); the surviving samples are compared")
-        for name, v in ver["streams"].items():
-            for key, what in (("absent", "absent from the recording (lost with the damage, or dropped live)"),
-                              ("missing", "recorded, not replayed (their raw data is lost)"),
-                              ("not_recorded", "replayed, their recorded block is lost")):
-                if v.get(key):
-                    spans = ", ".join(f"seq {r['seq'][0]}-{r['seq'][1]} (bus {r['bus_ns'][0] / 1e9:.3f}-"
-                                      f"{r['bus_ns'][1] / 1e9:.3f} s)" for r in v[f"{key}_ranges"][:3])
-                    more = " ..." if len(v[f"{key}_ranges"]) > 3 else ""
-                    lines.append(f"    {name}: {v[key]} {what}: {spans}{more}")
-    if ver["equal"] or (stopped_early and not any(v["mismatches"] for v in ver["streams"].values())):
-        n = sum(v["compared"] for v in ver["streams"].values())
-        lines.append(f"verified: all {n} replayed samples equal the recorded ones")
-        return lines
-    for name, v in ver["streams"].items():
-        if v["mismatches"] or v["missing"] or v["not_recorded"] or v["renumbered"]:
-            lines.append(f"  MISMATCH {name}: {v['mismatches']} differ, {v['missing']} not reproduced, "
-                         f"{v['not_recorded']} not recorded, {v['renumbered']} numbered differently")
-    for name, m in ver["first_mismatch"].items():
-        lines.append(f"  first difference in {name}: {m}")
-    return lines
 
 
 def session_span(reader: SessionReader) -> tuple[int, int]:
@@ -386,7 +215,7 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
             new_streams = {o.name for o in proc.output_streams()} - set(reader.streams)
     verifier = None
     if verify:
-        verifier = ReplayVerifier(reader.all_samples())
+        verifier = ReplayVerifier(reader.all_samples(), expected=expected_from_summary(reader.summary))
         cap.subscribe(verifier, Overflow.NEVER_DROP, "verifier")
     for sub, pol in subscribers or []:
         cap.subscribe(sub, pol)
@@ -413,8 +242,9 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
             result["unexpected"].pop(name, None)
         holes_ok = bool(reader.damaged)
         result["equal"] = all(v["mismatches"] == 0 and (holes_ok or (
-            v["missing"] == 0 and v["not_recorded"] == 0 and v["renumbered"] == 0))
-            for v in result["streams"].values()) and not result["unexpected"]
+            v["missing"] == v["not_recorded"] == v["renumbered"] == v["restamped"] == 0
+            and (v["expected"] is None or v["lost"] == 0)))
+            for v in result["streams"].values()) and not result["unexpected"] and not result["check_errors"]
     firsts = [c.first_bus_ns for c in cap.stats.streams.values() if c.first_bus_ns is not None]
     lasts = [c.last_bus_ns for c in cap.stats.streams.values() if c.last_bus_ns is not None]
     replayed = (max(lasts) - min(firsts)) / 1e9 if firsts and lasts else 0.0
@@ -423,4 +253,4 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     return ReplayReport(report, result, lateness, (t_end - t0) / 1e9, replayed, early)
 
 
-__all__ = ["ReplayReport", "ReplayVerifier", "describe_verification", "replay_session", "run_merged", "session_span"]
+__all__ = ["ReplayReport", "replay_session", "run_merged", "session_span"]

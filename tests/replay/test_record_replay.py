@@ -10,7 +10,8 @@ import pytest
 from wait_helpers import DEADLINE_S, wait_until
 
 from capture.app.orchestrator import Capture
-from capture.app.replay import ReplayVerifier, replay_session
+from capture.app.replay import replay_session
+from capture.app.replay_check import ReplayVerifier
 from capture.clock import ManualClock
 from capture.errors import ConfigError, EndOfStream, SessionError
 from capture.session import SessionReader

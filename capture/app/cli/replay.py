@@ -52,7 +52,8 @@ def add_parser(sub: Subcommands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.app.replay import describe_verification, replay_session
+    from capture.app.replay import replay_session
+    from capture.app.replay_check import describe_verification
 
     speed = 0.0 if args.fast else args.speed
     if speed is None:
