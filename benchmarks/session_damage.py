@@ -4,9 +4,12 @@ Records a session of three synthetic IMUs (several streams, many MCAP chunks) th
 recorder, damages copies of it at seeded random offsets and reads each with ``SessionReader``. For
 each case the samples that come back are compared with what the pristine file holds and with what
 the damaged chunks held. Target: no session lost, no case losing more than the damaged chunks'
-samples, no loss without the damage reported. Then ``perfcap replay --fast`` runs on a sample of
-the damaged copies (no traceback, exit 0 or 1). The CI test (``tests/unit/capture/
-test_session_damage.py``) runs a bounded part of this.
+samples, no loss without the damage reported. Then the replay side: damaged copies of that take and
+of a take of untidy devices in 4 KiB chunks (drift, jitter, no device clock with line noise, a clock
+that wraps) are replayed as fast as possible with verification; target: every case "equal" (no
+surviving reading differs) and the loss reported exactly what the damage cost; and ``perfcap replay
+--fast`` runs on a sample of copies (no traceback, exit 0 or 1). The CI tests (``tests/unit/capture/
+test_session_damage.py``, ``tests/cli/test_damaged_replay.py``) run bounded parts of this.
 
 Measurement script: prints figures and PASS/FAIL per target, always exits 0.
 """
@@ -25,7 +28,7 @@ from pathlib import Path
 from _common import check, header, summary
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from session_damage_helpers import chunk_map, make_session, sweep
+from session_damage_helpers import VARIED, ReplaySweepResult, chunk_map, make_session, replay_sweep, sweep
 
 
 def main() -> None:
@@ -35,6 +38,8 @@ def main() -> None:
     ap.add_argument("--block-bytes", type=int, default=4096)
     ap.add_argument("--seconds", type=int, default=30, help="length of the recorded session")
     ap.add_argument("--replays", type=int, default=40, help="damaged copies also replayed with replay --fast")
+    ap.add_argument("--replay-flips", type=int, default=500, help="flips replayed and verified, per take")
+    ap.add_argument("--replay-blocks", type=int, default=50, help="zeroed blocks replayed and verified, per take")
     ap.add_argument("--seed", type=int, default=16)
     args = ap.parse_args()
     logging.disable(logging.WARNING)   # one warning per damaged case otherwise
@@ -65,9 +70,35 @@ def main() -> None:
           f"{res.over_budget + blk.over_budget} cases over")
     check("every loss reported", res.silent_losses + blk.silent_losses == 0,
           f"{res.silent_losses + blk.silent_losses} silent")
+    replay_verified(pristine, work, args)
     replay_sample(pristine, work, args)
     shutil.rmtree(work, ignore_errors=True)
     summary()
+
+
+def replay_verified(pristine: Path, work: Path, args: argparse.Namespace) -> None:
+    """Replay damaged copies with verification and check each report against the truth."""
+    untidy = work / "untidy.mcap"
+    make_session(untidy, seconds=args.seconds, chunk_bytes=4096, urls=VARIED)
+    t0 = time.perf_counter()
+    total = ReplaySweepResult()
+    for label, take in (("tidy take, 32 KiB chunks", pristine), ("untidy take, 4 KiB chunks", untidy)):
+        r = replay_sweep(take, work, flips=args.replay_flips, blocks=args.replay_blocks,
+                         block_bytes=args.block_bytes, seed=args.seed + 3)
+        print(f"   replay, {label} ({len(chunk_map(take.read_bytes()))} chunks): {r.tried} cases, not equal "
+              f"{r.not_equal}, loss misreported {r.wrong_loss}, inconsistent {r.inconsistent}, not replayed "
+              f"{r.sessions_lost}; {r.cases_with_loss} lost readings, {r.cases_renumbered} renumbered, "
+              f"{r.cases_restamped} re-stamped (at most {r.restamped_max_ns / 1e6:.1f} ms), {r.inexact} "
+              "with the summary lost (loss a lower bound)")
+        for f in r.failures[:5]:
+            print(f"      {f[:300]}")
+        for k in ("tried", "sessions_lost", "not_equal", "wrong_loss", "inconsistent"):
+            setattr(total, k, getattr(total, k) + getattr(r, k))
+    print(f"   {time.perf_counter() - t0:.1f} s for {total.tried} replays")
+    check("damaged replays verified equal", total.not_equal + total.sessions_lost == 0,
+          f"{total.not_equal} not equal, {total.sessions_lost} not replayed of {total.tried}")
+    check("loss reported exactly", total.wrong_loss + total.inconsistent == 0,
+          f"{total.wrong_loss} misreported, {total.inconsistent} inconsistent")
 
 
 def replay_sample(pristine: Path, work: Path, args: argparse.Namespace) -> None:

@@ -27,19 +27,28 @@ if TYPE_CHECKING:
     from pathlib import Path
 
 
+#: devices whose clocks and framing are as untidy as real ones: drift and jitter, no device clock with
+#: bursts and line noise, a device clock that starts a second before it wraps
+VARIED = ("a=synth://imu?rate=200&drift_ppm=80&jitter_ms=2&{d}",
+          "b=synth://imu?rate=100&device_clock=false&burst_ms=16&garbage=0.01&seed=2&{d}",
+          "c=synth://imu?rate=50&start_ms=86399000&seed=3&{d}")
+
+
 def make_session(path: Path | str, seconds: int = 10, max_loss_s: float = 0.1, chunk_bytes: int = 32 << 10,
-                 writer: type[SessionWriter] = SessionWriter) -> None:
-    """A session of three synthetic devices in chunks of ``chunk_bytes`` (as many as a long take has,
-    however fast this machine records), written by ``writer``."""
+                 writer: type[SessionWriter] = SessionWriter, urls: tuple[str, ...] | None = None) -> None:
+    """A session of three synthetic devices (``urls``, with ``{d}`` for the duration options; default:
+    tidy ones) in chunks of ``chunk_bytes`` (as many as a long take has, however fast this machine
+    records), written by ``writer``."""
     import capture.app.orchestrator as orch
 
     d = f"realtime=false&duration={seconds}"
+    urls = urls or ("a=synth://imu?rate=200&{d}", "b=synth://imu?rate=100&seed=2&{d}",
+                    "c=synth://imu?rate=50&seed=3&{d}")
     names = vars(orch)
     saved = names["SessionWriter"]
     names["SessionWriter"] = functools.partial(writer, chunk_bytes=chunk_bytes)
     try:
-        Capture([f"a=synth://imu?rate=200&{d}", f"b=synth://imu?rate=100&seed=2&{d}",
-                 f"c=synth://imu?rate=50&seed=3&{d}"],
+        Capture([u.format(d=d) for u in urls],
                 output=str(path), fsync=False, overwrite=True, max_loss_s=max_loss_s).run(None)
     finally:
         names["SessionWriter"] = saved
@@ -141,4 +150,79 @@ def sweep(pristine: Path, work: Path, *, flips: int, blocks: int, block_bytes: i
             else:
                 res.silent_losses += 1
                 res.failures.append(f"{what}: lost {lost} samples without reporting damage")
+    return res
+
+
+@dataclass
+class ReplaySweepResult:
+    """``replay --fast`` (``replay_session`` at speed 0) on damaged copies: per case, the verdict must be
+    "equal" (no surviving reading differs) and the loss reported must be what the damage really cost."""
+
+    tried: int = 0
+    sessions_lost: int = 0        # the damaged copy could not be replayed at all
+    not_equal: int = 0            # cases with a mismatch, an unexpected stream or a failed check
+    wrong_loss: int = 0           # reported lost differs from pristine less damaged (summary intact)
+    inexact: int = 0              # cases whose summary was lost (loss counted from holes: a lower bound)
+    inconsistent: int = 0         # compared + missing != recorded, or more not-recorded than lost
+    cases_with_loss: int = 0
+    cases_renumbered: int = 0
+    cases_restamped: int = 0
+    restamped_max_ns: int = 0
+    failures: list[str] = field(default_factory=list)
+
+
+def replay_sweep(pristine: Path, work: Path, *, flips: int, blocks: int, block_bytes: int = 4096,
+                 seed: int = 16) -> ReplaySweepResult:
+    """Damage copies of ``pristine`` (single-bit flips, zeroed blocks, at seeded random offsets),
+    replay each as fast as possible with verification and check the report against the truth read
+    from the pristine and the damaged file; see ``ReplaySweepResult``."""
+    from capture.app.replay import replay_session
+
+    data = pristine.read_bytes()
+    ref = {s: len(b) for s, b in SessionReader(str(pristine)).all_samples().items()}
+    res = ReplaySweepResult()
+    rng = random.Random(seed)
+    cases = [("flip", rng.randrange(len(data)), 1) for _ in range(flips)]
+    cases += [("zero", rng.randrange(len(data) - block_bytes), block_bytes) for _ in range(blocks)]
+    path = work / "replay_damaged.mcap"
+    for kind, at, width in cases:
+        bad = bytearray(data)
+        if kind == "flip":
+            bad[at] ^= 1 << rng.randrange(8)
+        else:
+            bad[at:at + width] = bytes(width)
+        if bad == data:
+            continue
+        res.tried += 1
+        path.write_bytes(bytes(bad))
+        os.utime(path, ns=(res.tried, res.tried))
+        what = f"{kind} at byte {at} (+{width})"
+        try:
+            got = {s: len(b) for s, b in SessionReader(str(path)).all_samples().items()}
+            ver = replay_session(str(path), speed=0).verification
+        except SessionError as exc:
+            res.sessions_lost += 1
+            res.failures.append(f"{what}: not replayed: {exc}")
+            continue
+        assert ver is not None
+        if not ver["equal"]:
+            res.not_equal += 1
+            res.failures.append(f"{what}: not equal: {ver['first_mismatch'] or ver['unexpected']} "
+                                f"{ver.get('first_check_error') or ''}")
+        streams = ver["streams"]
+        exact = all(v["lost_exact"] for v in streams.values())
+        res.inexact += not exact
+        res.cases_with_loss += any(v["lost"] for v in streams.values())
+        res.cases_renumbered += any(v["renumbered"] for v in streams.values())
+        if any(v["restamped"] for v in streams.values()):
+            res.cases_restamped += 1
+            res.restamped_max_ns = max(res.restamped_max_ns, *(v["restamped_max_ns"] for v in streams.values()))
+        for s, v in streams.items():
+            really = ref.get(s, 0) - got.get(s, 0)
+            if (v["lost"] != really) if v["lost_exact"] else (v["lost"] > really):
+                res.wrong_loss += 1
+                res.failures.append(f"{what}: {s} reported {v['lost']} lost, really {really}")
+            if v["compared"] + v["missing"] != v["recorded"] or v["not_recorded"] > v["lost"]:
+                res.inconsistent += 1
+                res.failures.append(f"{what}: {s} inconsistent: {v}")
     return res

@@ -50,7 +50,8 @@ def test_a_damaged_first_chunk_costs_only_its_own_samples(session: Path, tmp_pat
     got = total_samples(r)
     assert set(got) == set(ref)
     lost = sum(len(v) for v in ref.values()) - sum(len(v) for v in got.values())
-    assert 0 < lost <= first.samples
+    # how the take's flushes fell decides whether its first chunk holds samples too (a busy machine: not)
+    assert lost <= first.samples and (lost > 0) == (first.samples > 0)
     assert r.damaged and r.damaged_regions   # reported, not silent
     assert r.devices.keys() == SessionReader(str(session)).devices.keys()
 
