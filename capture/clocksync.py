@@ -37,6 +37,9 @@ How ``ClockSync`` fits it:
 * Streams without a device clock get a pseudo clock: the reading counter at the nominal rate. The
   fit then recovers the true rate and dejitters arrivals; a delay beyond the gap threshold (a
   stall, a reconnect, dropped readings) re-anchors it.
+* Streams with neither a device clock nor a nominal rate report when something happens (a mouse,
+  a touch surface): no grid fits them, so each reading's bus time is its chunk's arrival (several
+  in one chunk end at it, 1 us apart), never before the previous one.
 
 Bus times never exceed the arrival time of their chunk and never go backwards within an epoch.
 """
@@ -364,8 +367,12 @@ class ClockSync:
             raise ValueError(f"{self.stream}: a send time given to a stream declared without a device clock")
         elif self.spec is None:
             bus = np.empty(n, np.int64)
-            for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist(), strict=True):
-                bus[f:l_ + 1] = self._irregular(h, l_ - f + 1)
+            if last_idx.shape[0] == n:   # one reading per chunk (a HID report): its arrival, as _irregular
+                bus[:] = hosts
+                self._last_bus = int(hosts[-1])
+            else:
+                for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist(), strict=True):
+                    bus[f:l_ + 1] = self._irregular(h, l_ - f + 1)
             return None, bus, np.full(n, self.epoch, np.int64)
         else:
             c0 = self._counter

@@ -13,8 +13,11 @@ The streams depend on what the descriptor describes (``devices.hid.descriptor.cl
 Streams are declared before opening, so the descriptor is needed up front: the ``rdesc`` option
 (hex), else the transport's ``report_descriptor()`` if it answers before open (simulators do),
 else the standard layout of ``profile``. The handshake reads the real descriptor and fails if it
-would change the declared streams. These devices have no clock: ``clock=None`` and the nominal
-rate from ``rate`` (default: mouse 1000 Hz, pen 200 Hz, touch 100 Hz).
+would change the declared streams. These devices have no clock, and they report when something
+changes, not at a fixed rate: by default a reading's bus time is its report's arrival (no rate is
+declared, so no counter grid is fitted to reports that pause and resume). ``rate=HZ`` declares a
+device that does report at a fixed rate (a pen polled while in range, say): its arrivals are then
+dejittered on that rate's grid, re-anchored at every pause.
 """
 
 from __future__ import annotations
@@ -64,7 +67,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DEFAULT_RATES = {"mouse": 1000.0, "pen": 200.0, "touch": 100.0}
 NAN = math.nan
 Plan = Callable[[list[Any]], list[Reading]]
 
@@ -107,8 +109,8 @@ class GenericHid(HidDevice[_HidCodec]):
         "rdesc": Option(str, "", "the report descriptor as hex (else asked of the transport before open)"),
         "profile": Option(str, "auto", "which part to publish; with no descriptor known before open, the"
                           " standard layout to assume", choices=("auto", "mouse", "pen", "touch")),
-        "rate": Option(float, 0.0, "nominal report rate, Hz (0 = mouse 1000, pen 200, touch 100)", min=0.0,
-                       max=100_000.0),
+        "rate": Option(float, 0.0, "fixed report rate, Hz, to dejitter arrivals on (0 = event-driven: each"
+                       " reading stamped at its report's arrival)", min=0.0, max=100_000.0),
     }
 
     # -- the descriptor before open ------------------------------------------------------------------
@@ -165,12 +167,11 @@ class GenericHid(HidDevice[_HidCodec]):
         streams: list[StreamInfo] = []
         self._plans: dict[int | None, list[Plan]] = {}
         for cls in classes:
-            rate = self.opts["rate"] or DEFAULT_RATES[cls]
-            getattr(self, f"_declare_{cls}")(layout, streams, rate)
+            getattr(self, f"_declare_{cls}")(layout, streams, self.opts["rate"] or None)
         return streams
 
     # -- mouse ---------------------------------------------------------------------------------------
-    def _declare_mouse(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float) -> None:
+    def _declare_mouse(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float | None) -> None:
         reports = [r for r in layout.reports.values() if any(f.application in MOUSE_APPS for f in r.fields)]
         nbuttons = 0
         for r in reports:
@@ -221,7 +222,7 @@ class GenericHid(HidDevice[_HidCodec]):
         return plan
 
     # -- pen -----------------------------------------------------------------------------------------
-    def _declare_pen(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float) -> None:
+    def _declare_pen(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float | None) -> None:
         si = len(streams)
         unit_xy = "1"
         plans: list[tuple[int | None, Plan]] = []
@@ -264,7 +265,7 @@ class GenericHid(HidDevice[_HidCodec]):
         return plan
 
     # -- touch ---------------------------------------------------------------------------------------
-    def _declare_touch(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float) -> None:
+    def _declare_touch(self, layout: DescriptorLayout, streams: list[StreamInfo], rate: float | None) -> None:
         si = len(streams)
         unit_xy = "1"
         for r in layout.reports.values():
