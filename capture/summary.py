@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from capture.sample import NO_TIME
 
 if TYPE_CHECKING:
@@ -24,6 +26,7 @@ def summarize(reader: SessionReader) -> dict[str, Any]:
         rate = 0.0
         drops = 0
         has_dev = False
+        lag_ms: dict[str, float] | None = None
         if b is not None and n:
             tb = b.t_bus_ns
             t_min = int(tb[0]) if t_min is None else min(t_min, int(tb[0]))
@@ -33,10 +36,16 @@ def summarize(reader: SessionReader) -> dict[str, Any]:
             seq = b.seq
             drops = int((seq[-1] - seq[0] + 1) - n)
             has_dev = bool((b.t_device_ns != NO_TIME).any())
+            lag = (b.t_host_ns - tb) / 1e6
+            lag_ms = {"p50": round(float(np.median(lag)), 3), "max": round(float(lag.max()), 3),
+                      "min": round(float(lag.min()), 3)}
         streams.append({
             "name": name, "kind": info.kind, "device": info.device.name, "device_kind": info.device.kind,
             "samples": n, "rate_hz": round(rate, 3), "nominal_rate_hz": info.nominal_rate_hz, "drops": drops,
             "channels": list(info.channels), "units": list(info.units), "device_clock": has_dev,
+            # how long before its chunk arrived each reading's bus time lies (latency and jitter taken
+            # out by the clock fit; 0 for a reading stamped at its arrival)
+            "arrival_lag_ms": lag_ms,
         })
     clocks: dict[str, dict[str, Any]] = {}
     for st in reader.clock_states():

@@ -45,7 +45,11 @@ def run(args: argparse.Namespace) -> int:
     for st in s["streams"]:
         clk = st["clock"] or {}
         c = (f"drift {clk['drift_ppm']:+.1f} ppm, {clk['epochs']} epoch(s)" if clk and not clk.get("pseudo")
-             else "no device clock (dejittered arrivals)" if clk else "")
+             else "no device clock (dejittered arrivals)" if clk
+             else "stamped at arrival" if st["samples"] and not st["device_clock"] else "")
+        lag = st.get("arrival_lag_ms")
+        if lag and clk:
+            c += f", bus {lag['p50']:.3f} ms (max {lag['max']:.3f}) before arrival"
         out(f"  {st['name']:24s} {st['kind']:8s} {st['samples']:8d} samples {st['rate_hz']:9.2f} Hz "
             f"{st['drops']:5d} drops  {c}")
     if s["events"]:

@@ -16,6 +16,7 @@ import pytest
 from capture.app.orchestrator import Capture
 from capture.clocksync import ClockSync
 from capture.session import SessionReader
+from capture.summary import summarize
 from devices import open_device
 
 if TYPE_CHECKING:
@@ -60,6 +61,10 @@ def test_every_real_trace_gets_its_recorded_report_times(name: str, url: str, tm
         assert r.streams[s].nominal_rate_hz is None
     assert n > 0, name
     assert not r.clock_states()   # nothing fitted, so no drift and no reset
+    # what ``perfcap info`` says: stamped at arrival, the bus times at the recorded report times
+    for st in summarize(r)["streams"]:
+        if st["samples"]:
+            assert st["clock"] is None and 0 <= st["arrival_lag_ms"]["min"] <= st["arrival_lag_ms"]["max"] < 1.0
 
 
 @pytest.mark.parametrize("src", EVEMU[:2] or [None])
