@@ -101,6 +101,10 @@ def _monotone_chain(x: np.ndarray, y: np.ndarray, order: list[int]) -> list[int]
 
 
 _LOOKAHEAD = 512
+#: regular arrival intervals that make a run of an event-driven stream, whose grid dejitters it
+EVENT_RUN = 8
+#: the most an event-driven reading is moved before its arrival by dejittering
+EVENT_DEJITTER_MAX_NS = 1_000_000
 
 
 class _BinRing:
@@ -226,6 +230,7 @@ class ClockSync:
         self._new_epoch_pending = True
         self._last_bus = -(2**62)
         self._delay_hi = 0.0
+        self._arrivals: list[int] = []   # an event-driven stream's last EVENT_RUN arrivals
 
     # -- epochs -------------------------------------------------------------------------------
     def _start_epoch(self, dev_ns: int, host_ns: int, keep_rate: bool = False) -> None:
@@ -290,8 +295,8 @@ class ClockSync:
                 raise ValueError(f"{self.stream}: a send time given to a stream declared without a device clock")
             if n <= 0:
                 return [], []
-            if self.spec is None:  # no clock, no nominal rate: irregular stream
-                return [None] * n, self._irregular(t_host_ns, n)
+            if self.spec is None:  # no clock, no nominal rate: an event-driven stream
+                return [None] * n, self._irregular(self._event_time(t_host_ns), n)
             c0 = self._counter
             self._counter += n
             p = self._period_ns
@@ -367,11 +372,13 @@ class ClockSync:
             raise ValueError(f"{self.stream}: a send time given to a stream declared without a device clock")
         elif self.spec is None:
             bus = np.empty(n, np.int64)
-            if last_idx.shape[0] == n:   # one reading per chunk (a HID report): its arrival, as _irregular
-                bus[:] = hosts
-                self._last_bus = int(hosts[-1])
+            ends = self._event_times(hosts)
+            if last_idx.shape[0] == n:   # one reading per chunk (a HID report), as _irregular does it
+                out = np.maximum.accumulate(np.r_[self._last_bus + 1, ends])[1:]
+                bus[:] = np.minimum(out, ends)
+                self._last_bus = int(bus[-1])
             else:
-                for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), hosts.tolist(), strict=True):
+                for f, l_, h in zip(first_idx.tolist(), last_idx.tolist(), ends.tolist(), strict=True):
                     bus[f:l_ + 1] = self._irregular(h, l_ - f + 1)
             return None, bus, np.full(n, self.epoch, np.int64)
         else:
@@ -416,8 +423,63 @@ class ClockSync:
         return int(self._x0 + self._y0 + self._a + (dev_ns - self._x0) * (1.0 + self._b))
 
     # -- internals ----------------------------------------------------------------------------
+    def _event_times(self, hosts: np.ndarray) -> np.ndarray:
+        """When each chunk of an event-driven stream happened: its arrival, or, where the last
+        ``EVENT_RUN`` intervals up to it are regular (all within 10 % of their median, a period of
+        0.25 to 50 ms: a polled mouse in motion, a pen in range), the earliest time the run's grid
+        allows (the lower envelope of the run's arrivals projected on to it with the run's mean
+        period, so never earlier than the truth by more than the arrivals' jitter), at most
+        ``EVENT_DEJITTER_MAX_NS`` and half a period before the arrival. A pause or an irregular
+        interval ends the run at once. Each chunk depends only on the arrivals before it, so the
+        per-chunk and vectorised paths agree however the chunks are split."""
+        w = EVENT_RUN
+        a = np.concatenate([np.array(self._arrivals, np.int64), hosts]) if self._arrivals else hosts
+        out = hosts.copy()
+        start = max(w, a.size - hosts.size)   # positions in ``a`` that have a full window and are new
+        if a.size > w and start < a.size:
+            iv = np.diff(a[start - w:]).astype(np.float64)       # the w intervals up to each new position
+            win = np.lib.stride_tricks.sliding_window_view(iv, w)
+            med = np.median(win, axis=1)
+            ok = ((win >= 0.9 * med[:, None]) & (win <= 1.1 * med[:, None])).all(axis=1)
+            ok &= (med >= 250_000) & (med <= 50_000_000)
+            if ok.any():
+                base = int(a[start - w])   # times relative to it: float64 keeps whole ns
+                rel = (a[start - w:] - base).astype(np.float64)
+                prev = np.lib.stride_tricks.sliding_window_view(rel[:-1], w)
+                span = win.sum(axis=1) / w   # the period over the run: its own error shrinks as 1/w
+                pred = (prev + (w - np.arange(w))[None, :] * span[:, None]).min(axis=1)
+                cur = rel[w:]
+                floor = cur - np.minimum(EVENT_DEJITTER_MAX_NS, med / 2)
+                dej = np.clip(np.floor(pred), floor, cur).astype(np.int64) + base
+                out[start - (a.size - hosts.size):] = np.where(ok, dej, a[start:])
+        self._arrivals = a[-w:].tolist()
+        return out
+
+    def _event_time(self, h: int) -> int:
+        """``_event_times`` for one chunk, in plain Python (the live path: a few us, not a numpy
+        round trip); the same float operations on the same integer-valued floats, so the same result."""
+        w = EVENT_RUN
+        arr = self._arrivals
+        out = h
+        if len(arr) == w:
+            seq = [*arr, h]
+            iv = [float(seq[i + 1] - seq[i]) for i in range(w)]
+            srt = sorted(iv)
+            med = (srt[w // 2 - 1] + srt[w // 2]) / 2
+            if 250_000 <= med <= 50_000_000 and all(0.9 * med <= v <= 1.1 * med for v in iv):
+                base = seq[0]
+                span = sum(iv) / w
+                pred = min(float(seq[j] - base) + (w - j) * span for j in range(w))
+                cur = float(h - base)
+                floor = cur - min(EVENT_DEJITTER_MAX_NS, med / 2)
+                out = int(min(max(math.floor(pred), floor), cur)) + base
+            arr.pop(0)
+        arr.append(h)
+        return out
+
     def _irregular(self, t_host_ns: int, n: int) -> list[int]:
-        # Irregular streams with no clock and no nominal rate: keep order, 1 us apart, ending at arrival.
+        # Event-driven streams with no clock and no nominal rate: keep order, 1 us apart, ending at
+        # the chunk's time (``_event_times``).
         first = max(t_host_ns - (n - 1) * 1000, self._last_bus + 1)
         out = [min(first + 1000 * i, t_host_ns) for i in range(n)]
         self._last_bus = out[-1]

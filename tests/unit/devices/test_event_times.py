@@ -1,8 +1,9 @@
 """Event-driven streams (mice, pens, touch surfaces: no device clock, no fixed rate) are stamped at
-their reports' arrivals, not on a counter grid: on every real hid-recorder and evemu trace each
-reading's bus time is its report's recorded time (the arrival, in these recordings), with no fitted
-drift and no clock reset; with link latency and jitter it is the arrival, within the jitter of the
-report's true time. A seeded sweep of irregular arrivals holds the stamping rule and the equality of
+their reports' arrivals, dejittered only inside runs of regular arrivals, never on a counter grid:
+on every real hid-recorder and evemu trace each reading's bus time is its report's recorded time
+(the arrival, in these recordings) to within the dejittering, with no fitted drift and no clock
+reset; with link latency and jitter it lies within the jitter of the report's true time. Seeded
+sweeps of irregular and polled arrivals hold the stamping rule, the dejittering and the equality of
 the per-chunk and vectorised paths."""
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from capture.app.orchestrator import Capture
-from capture.clocksync import ClockSync
+from capture.clocksync import EVENT_DEJITTER_MAX_NS, ClockSync
 from capture.session import SessionReader
 from capture.summary import summarize
 from devices import open_device
@@ -96,8 +97,13 @@ def test_with_latency_and_jitter_the_bus_time_is_the_arrival(src: Path | None, t
 def test_irregular_arrivals_are_stamped_at_arrival_on_both_paths(seed: int) -> None:
     rng = random.Random(seed)
     m = rng.randrange(1, 400)
-    gaps = [rng.choice((rng.randrange(0, 3), rng.randrange(900_000, 1_100_000), rng.randrange(1, 2_000_000_000)))
-            for _ in range(m)]
+    if seed % 2:   # polled runs (a period, 3 % jitter) broken by pauses: the dejittered case
+        period = rng.uniform(300_000, 30_000_000)
+        gaps = [int(period * rng.uniform(0.97, 1.03)) if rng.random() > 0.03 else rng.randrange(1, 10**9)
+                for _ in range(m)]
+    else:
+        gaps = [rng.choice((rng.randrange(0, 3), rng.randrange(900_000, 1_100_000), rng.randrange(1, 2 * 10**9)))
+                for _ in range(m)]
     hosts = np.cumsum(np.array(gaps, np.int64)) + 10**12
     counts = [rng.choice((1, 1, 1, rng.randrange(1, 6))) for _ in range(m)]
     a = ClockSync("s", None, None)
@@ -105,9 +111,11 @@ def test_irregular_arrivals_are_stamped_at_arrival_on_both_paths(seed: int) -> N
     for h, c in zip(hosts.tolist(), counts, strict=True):
         before = per_chunk[-1] if per_chunk else None
         dev, bus = a.stamp(h, None, c)
-        assert dev == [None] * c and bus[-1] == h
-        if before is None or before < h - (c - 1) * 1000:
-            assert bus == [h - (c - 1 - i) * 1000 for i in range(c)]   # 1 us apart, ending at the arrival
+        end = bus[-1]
+        # at its arrival, or dejittered inside a regular run: at most 1 ms and half a period before it
+        assert dev == [None] * c and h - EVENT_DEJITTER_MAX_NS <= end <= h
+        if before is None or before < end - (c - 1) * 1000:
+            assert bus == [end - (c - 1 - i) * 1000 for i in range(c)]   # 1 us apart, ending at its time
         per_chunk += bus
     got = np.array(per_chunk)
     assert np.all(np.diff(got) >= 0)
@@ -122,8 +130,38 @@ def test_irregular_arrivals_are_stamped_at_arrival_on_both_paths(seed: int) -> N
             _, bus, _ = b.stamp_many(hosts, co, None)
             parts.append(bus)
     assert np.array_equal(np.concatenate(parts), got)
-    if all(c == 1 for c in counts):
-        assert np.array_equal(got, hosts)
+
+
+@pytest.mark.parametrize("seed", range(200))
+def test_regular_runs_are_dejittered_and_a_pause_is_stamped_at_arrival(seed: int) -> None:
+    """Runs of a polled device (a period of 0.5 to 20 ms, jitter up to 3 % of it) between pauses and
+    single events: inside a run the bus time is nearer the true grid than the arrival and never before
+    the truth by more than the jitter; the first report after a pause is stamped at its arrival."""
+    rng = random.Random(seed)
+    truth: list[int] = []
+    arrival: list[int] = []
+    first_after_pause: list[int] = []
+    t = 10**12
+    for _ in range(rng.randrange(1, 6)):
+        period = rng.uniform(0.5e6, 20e6)
+        t += rng.randrange(60_000_000, 900_000_000)   # a pause
+        first_after_pause.append(len(truth))
+        for k in range(rng.randrange(1, 300)):
+            tt = int(t + k * period)
+            truth.append(tt)
+            arrival.append(max(tt + int(rng.uniform(0, 0.03) * period), arrival[-1] if arrival else 0))
+        t = truth[-1]
+    cs = ClockSync("s", None, None)
+    bus = np.array([cs.stamp(h, None, 1)[1][0] for h in arrival])
+    tr, ar = np.array(truth), np.array(arrival)
+    assert np.all(bus <= ar) and np.all(ar - bus <= EVENT_DEJITTER_MAX_NS) and np.all(np.diff(bus) >= 0)
+    assert np.all(bus[first_after_pause] == ar[first_after_pause])
+    assert np.all(bus - tr >= -(ar - tr).max() - 16)   # never before the truth by more than the jitter
+    inside = np.ones(len(tr), bool)
+    for f in first_after_pause:
+        inside[f:f + 9] = False
+    if inside.sum() > 20:
+        assert np.abs(bus - tr)[inside].mean() < 0.6 * np.abs(ar - tr)[inside].mean() + 1
 
 
 def test_a_declared_rate_still_dejitters_on_its_grid(tmp_path: Path) -> None:
