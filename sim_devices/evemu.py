@@ -2,7 +2,8 @@
 or both in one file as ``evemu-record`` writes them (``description_for`` finds the description).
 
 ``.desc``: ``N:`` name, ``I: bus vendor product version`` (hex), ``P:``/``B:`` bitmasks,
-``A: code min max fuzz flat [res]``; ``.events``: ``E: sec.usec type code value`` (type and code
+``A: code min max fuzz flat [res]`` (``B:`` lines give ``bits``, the codes of each event type;
+``P:`` lines ``props``); ``.events``: ``E: sec.usec type code value`` (type and code
 hex, value decimal). ``#`` starts a comment. ``frames`` groups events into SYN_REPORT frames, each
 with its time and the events in it, which the HID simulators encode into one report per frame.
 A file is read only when it is a regular file of at most ``MAX_TRACE_BYTES`` with lines of at most
@@ -18,6 +19,7 @@ from capture.bounded_io import InputLimitError, read_text_bounded
 from capture.errors import TraceError
 
 EV_SYN, EV_KEY, EV_REL, EV_ABS, EV_MSC = 0, 1, 2, 3, 4
+EV_MAX = 0x1F
 SYN_REPORT = 0
 REL_X, REL_Y, REL_HWHEEL, REL_WHEEL, REL_WHEEL_HI_RES, REL_HWHEEL_HI_RES = 0, 1, 6, 8, 11, 12
 ABS_X, ABS_Y, ABS_PRESSURE, ABS_DISTANCE, ABS_TILT_X, ABS_TILT_Y = 0x00, 0x01, 0x18, 0x19, 0x1A, 0x1B
@@ -47,6 +49,10 @@ class EvemuDevice:
     product: int = 0
     version: int = 0
     absinfo: dict[int, AbsInfo] = field(default_factory=dict)
+    #: event type -> the codes its ``B:`` bitmask lines set (evdev capabilities)
+    bits: dict[int, set[int]] = field(default_factory=dict)
+    #: input properties (``P:`` bitmask: INPUT_PROP_POINTER, _DIRECT, ...)
+    props: set[int] = field(default_factory=set)
 
 
 @dataclass
@@ -77,13 +83,23 @@ def _lines(path: str) -> list[tuple[int, str]]:
     return out
 
 
+def _mask(parts: list[str]) -> list[int]:
+    """Bitmask bytes (hex, 00..ff)."""
+    out = [int(x, 16) for x in parts]
+    if any(not 0 <= b <= 0xFF for b in out):
+        raise ValueError("a bitmask byte is not 00..ff")
+    return out
+
+
 def parse_desc(path: str) -> EvemuDevice:
     """Parse an evemu ``.desc`` (or the header of an ``.events`` file that carries one).
 
     Raises:
-        TraceError: a malformed ``I:`` or ``A:`` line (file and line named).
+        TraceError: a malformed ``I:``, ``B:``, ``P:`` or ``A:`` line (file and line named).
     """
     dev = EvemuDevice()
+    offsets: dict[int, int] = {}  # a type's bitmask continues over several B: lines, 8 bytes each
+    prop_off = 0
     for n, line in _lines(path):
         tag, _, rest = line.partition(":")
         parts = rest.split()
@@ -92,6 +108,20 @@ def parse_desc(path: str) -> EvemuDevice:
                 dev.name = rest.strip()
             elif tag == "I":
                 dev.bus, dev.vendor, dev.product, dev.version = (int(x, 16) for x in parts[:4])
+            elif tag == "B":
+                if not parts:
+                    raise ValueError("needs a type and its bitmask bytes")
+                typ, mask = int(parts[0], 16), _mask(parts[1:])
+                if not 0 <= typ <= EV_MAX:
+                    raise ValueError(f"event type {typ:#x} beyond EV_MAX")
+                off = offsets.get(typ, 0)
+                codes = dev.bits.setdefault(typ, set())
+                codes.update(off + 8 * i + b for i, byte in enumerate(mask) for b in range(8) if byte >> b & 1)
+                offsets[typ] = off + 8 * len(mask)
+            elif tag == "P":
+                mask = _mask(parts)
+                dev.props.update(prop_off + 8 * i + b for i, byte in enumerate(mask) for b in range(8) if byte >> b & 1)
+                prop_off += 8 * len(mask)
             elif tag == "A":
                 vals = [int(x) for x in parts[1:]]
                 if len(vals) < 2:
