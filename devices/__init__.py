@@ -34,6 +34,7 @@ DEVICE_TYPES: dict[str, tuple[str, str]] = {
     "bno08x_rvc": ("devices.bno08x", "Bno08xRvcImu"),
     "textline": ("devices.textline", "TextLineImu"),
     "hid": ("devices.hid.generic", "GenericHid"),
+    "evdev": ("devices.evdev", "EvdevInput"),
     "ds4": ("devices.hid.sony", "DualShock4"),
     "dualsense": ("devices.hid.sony", "DualSense"),
     "switchpro": ("devices.hid.nintendo", "SwitchPro"),

@@ -29,6 +29,7 @@ TRANSPORTS: dict[str, tuple[str, str]] = {
     "socket": ("devices.transports.serialport", "SocketTransport"),
     "loop": ("devices.transports.serialport", "LoopTransport"),
     "hid": ("devices.transports.hid", "HidTransport"),
+    "evdev": ("devices.transports.evdev", "EvdevTransport"),
     "net": ("devices.transports.network", "NetTransport"),
     "sensorserver": ("devices.transports.sensorserver", "SensorServerTransport"),
 }
