@@ -1,4 +1,4 @@
-"""``perfcap devices``: the serial ports and HID devices present (with the device string that opens
+"""``perfcap devices``: the serial ports, HID devices and Linux input devices present (with the device string that opens
 each), the device kinds and the transports, with their options."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 
 def add_parser(sub: Subcommands) -> None:
-    dv = sub.add_parser("devices", help="list serial ports and HID devices present, device kinds and transports")
+    dv = sub.add_parser("devices", help="list serial ports, HID and input devices present, device kinds and transports")
     dv.add_argument("--json", action="store_true", help="one JSON object")
     dv.set_defaults(func=run)
 
@@ -25,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from devices import device_class, known_kinds, known_schemes
     from devices.options import describe
     from devices.transports import transport_class
+    from devices.transports.evdev import list_input_devices
     from devices.transports.hid import list_hid_devices
     from devices.transports.serialport import list_serial_ports
 
@@ -34,10 +35,17 @@ def run(args: argparse.Namespace) -> int:
         hid_error = ""
     except CaptureError as exc:
         hids, hid_error = [], str(exc)
+    try:
+        inputs = list_input_devices()
+        input_error = ""
+    except CaptureError as exc:
+        inputs, input_error = [], str(exc)
     if args.json:
         doc = {
             "serial_ports": [p.as_dict() for p in ports],
             "hid_devices": [h.as_dict() for h in hids],
+            "input_devices": [i.as_dict() for i in inputs],
+            **({"input_devices_error": input_error} if input_error else {}),
             "kinds": {k: {"description": device_class(k).description,
                           "options": {n: {"default": o.default, "help": o.help, "form": o.form()}
                                       for n, o in device_class(k).options.items()}} for k in known_kinds()},
@@ -73,6 +81,15 @@ def run(args: argparse.Namespace) -> int:
         kind = f"; kind {h.likely_kind}" if h.likely_kind else ""
         out(f"  {h.vid_pid} {h.product or 'unnamed'} ({h.manufacturer or 'unknown maker'}) over {h.bus}: {known}{kind}")
         out(f"      open as {h.likely_kind or 'KIND'}@{h.url}" + ("" if h.serial_number else f"  or hid://path={h.path}"))
+    out("input devices (Linux evdev: decoded by the kernel's drivers):")
+    if input_error:
+        out(f"  cannot list them: {input_error}")
+    elif not inputs:
+        out("  none found (pen tablets, touchpads, touchscreens and mice show up here when /dev/input/event* can be"
+            " read: the 'input' group; simevdev:///PATH.events replays an evemu recording)")
+    for i in inputs:
+        out(f"  {i.path}  [{i.vid:04x}:{i.pid:04x}] {i.name or 'unnamed'}: {i.likely}; {i.summary()}")
+        out(f"      open as {i.url}")
     out("device kinds (KIND@ in a device string):")
     for k in known_kinds():
         c = device_class(k)
