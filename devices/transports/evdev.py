@@ -353,14 +353,17 @@ class EvdevTransport(Transport):
             data = os.read(fd, EVENT_SIZE * self.opts["read_size"])
         except BlockingIOError:
             return None
-        except (OSError, ValueError) as exc:
-            gone = self.path is not None and not os.path.exists(self.path)
-            raise DeviceIOError(f"input device {self.path} {'vanished' if gone else 'failed'} (unplugged?): {exc}",
-                                source=self.url) from exc
+        except (OSError, ValueError) as exc:  # ENODEV: unplugged
+            raise self._lost(str(exc)) from exc
         t = self.clock.now_ns()
         if not data:
-            raise DeviceIOError(f"input device {self.path} returned no data (unplugged?)", source=self.url)
+            raise self._lost("the node reports data but returns none")
         return Chunk(data, t, Direction.RX)
+
+    def _lost(self, why: str) -> DeviceIOError:
+        gone = self.path is not None and not os.path.exists(self.path)
+        return DeviceIOError(f"input device {self.path} {'vanished' if gone else 'failed'} (unplugged?): {why}",
+                             source=self.url)
 
 
 __all__ = ["AbsInfo", "Capabilities", "EvdevSource", "EvdevTransport", "InputDeviceInfo", "capabilities_of",

@@ -349,3 +349,66 @@ def test_uinput_pen_read_through_evdev_into_a_capture(tmp_path: Path) -> None:
     assert x[-1] == pytest.approx(4900 / 100 / 1000)  # 100 units per mm -> m
     assert np.all(np.diff(b.t_bus_ns) > 0) and np.all(b.t_bus_ns <= b.t_host_ns)
     assert np.all(b.t_host_ns - b.t_bus_ns < 50_000_000)
+    # the kernel's times on CLOCK_MONOTONIC (EVIOCSCLOCKID), the host's clock: taken before the arrival
+    assert np.all(b.t_device_ns <= b.t_host_ns) and np.all(b.t_host_ns - b.t_device_ns < 50_000_000)
+
+
+def test_live_transport_reads_kernel_records_and_comes_back_after_an_unplug(tmp_path: Path) -> None:
+    """The evdev:// transport on a FIFO standing in for /dev/input/eventN (no uinput needed): whole
+    records in, the kernel's times as device times, an unplug a DeviceIOError, ``present`` false
+    until the node is back, then a reopen reads again."""
+    from capture.clock import MONOTONIC
+    from capture.errors import DeviceInitError, DeviceIOError
+
+    node = tmp_path / "event42"
+    os.mkfifo(node)
+    caps = Capabilities("fifo pen", 3, 0x1234, 0x5678, 1, {EV_KEY: frozenset({0x140, 0x14A})},
+                        {0: AbsInfo(0, 20000, 0, 0, 100), 1: AbsInfo(0, 10000, 0, 0, 100)})
+    t = EvdevTransport(str(node), {"clock": "realtime"})
+    t._caps = caps  # what python-evdev would have read from a real node
+    dev = EvdevInput("pen", t)
+    assert [s.name for s in dev.streams] == ["pen/pen"] and dev.streams[0].units[:2] == ("m", "m")
+    assert t.present() is True
+    dev.open()
+    w = os.open(node, os.O_WRONLY | os.O_NONBLOCK)
+    now_us = MONOTONIC.now_ns() // 1000
+    c = EvdevCodec()
+    frames = [EvdevFrame(now_us + 5000 * i, [(EV_KEY, 0x140, 1), (EV_ABS, 0, 1000 * i), (EV_ABS, 1, 500)])
+              for i in range(10)]
+    os.write(w, b"".join(c.encode(f) for f in frames))
+    got: list[Sample] = []
+    for _ in range(50):
+        got += [x for x in dev.poll(0.05) if isinstance(x, Sample)]
+        if len(got) == 10:
+            break
+    assert [s.t_device_ns for s in got] == [f.ticks * 1000 for f in frames]
+    assert [s.values[0] for s in got] == pytest.approx([i * 1000 / 100 / 1000 for i in range(10)])
+    assert all(s.t_bus_ns <= s.t_host_ns for s in got)
+    os.close(w)  # the device goes away
+    node.unlink()
+    with pytest.raises(DeviceIOError, match="vanished"):
+        for _ in range(50):
+            dev.poll(0.05)
+    dev.close()
+    assert t.present() is False
+    with pytest.raises(DeviceNotFoundError):
+        t.open()
+    os.mkfifo(node)  # and comes back
+    assert t.present() is True
+    dev.reset_after_reconnect()
+    dev.open()
+    w = os.open(node, os.O_WRONLY | os.O_NONBLOCK)
+    os.write(w, c.encode(EvdevFrame(now_us + 100_000, [(EV_ABS, 0, 7)])))
+    more: list[Sample] = []
+    for _ in range(50):
+        more += [x for x in dev.poll(0.05) if isinstance(x, Sample)]
+        if more:
+            break
+    assert more[0].t_device_ns == (now_us + 100_000) * 1000 and more[0].seq == 10
+    os.close(w)
+    dev.close()
+    # a node that is not an input device cannot take EVIOCSCLOCKID: said, not a crash
+    t2 = EvdevTransport(str(node))
+    t2._caps = caps
+    with pytest.raises(DeviceInitError, match="cannot set up"):
+        t2.open()
