@@ -45,7 +45,7 @@ def cases(traces: Path) -> list[tuple[str, str, str]]:
 
 
 def measure(url: str, path: str) -> tuple[int, float, float, float, int]:
-    Capture([f"x=hid@{url}"], output=path, fsync=False, overwrite=True).run(None)
+    Capture([url if url.startswith("simevdev:") else f"hid@{url}"], output=path, fsync=False, overwrite=True).run(None)
     r = SessionReader(path)
     errs = [np.abs(b.t_bus_ns - b.t_host_ns) for b in r.all_samples().values() if len(b)]
     e = np.concatenate(errs) / 1e6
@@ -103,6 +103,11 @@ def main() -> None:
             worst, worst_drift, resets = max(worst, mx), max(worst_drift, drift), resets + rs
             print(f"   {name:52s} {n:8d} | {med:8.3f} {mx:9.3f}    {drift:8.0f}     {rs:6d} |"
                   f"                      {bmed:8.3f} {bmx:9.3f}    {bdrift:9.0f}     {brs:6d}")
+        print("   through the kernel's decoding (evdev kind, the kernel's event times as the device clock):")
+        for p in sorted(args.traces.rglob("*.events")):
+            n, med, mx, drift, rs = measure(f"simevdev://{p.resolve()}?realtime=false", f"{d}/ev.mcap")
+            worst, worst_drift, resets = max(worst, mx), max(worst_drift, drift), resets + rs
+            print(f"   {p.name:52s} {n:8d} | {med:8.3f} {mx:9.3f}    {drift:8.0f}     {rs:6d} |")
     stamping_cost()
     check("bus within 1 ms of the recorded report time", worst <= 1.0, f"worst {worst:.3f} ms over {len(rows)} traces")
     check("fitted drift within +-500 ppm", worst_drift <= 500, f"worst {worst_drift:.0f} ppm")
