@@ -9,7 +9,7 @@ the per-chunk and vectorised paths."""
 from __future__ import annotations
 
 import random
-from typing import TYPE_CHECKING
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,10 +20,7 @@ from capture.session import SessionReader
 from capture.summary import summarize
 from devices import open_device
 
-if TYPE_CHECKING:
-    from pathlib import Path
-
-from conftest import TRACES
+TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "traces"
 
 HID = sorted((TRACES / "b_hid" / "hid_recorder").glob("*.hid"))
 EVEMU = sorted(TRACES.rglob("*.events"))
