@@ -14,7 +14,7 @@ consistency test and the anchor count are perfcap's own (the thesis gives neithe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -29,6 +29,7 @@ if TYPE_CHECKING:
 __all__ = [
     "Alignment",
     "align",
+    "alternation",
     "consistency_at",
     "detrended",
     "linear_consistency",
@@ -107,14 +108,18 @@ class Alignment:
     loops: list[tuple[float, float]]
     src: FloatArray
     target: FloatArray
+    _pchip: PchipInterpolator | None = field(default=None, init=False, repr=False, compare=False)
 
     def positions(self, u: FloatArray) -> FloatArray:
         """``(loops, len(u))`` sample positions of the loop phases ``u`` (0..1) in every loop."""
         return self.warp(u)
 
     def warp(self, u: FloatArray) -> FloatArray:
-        """As :meth:`positions`, from one monotone PCHIP over all loops (they share the knots)."""
-        pos: FloatArray = PchipInterpolator(self.target, self.src.T, axis=0)(u).T
+        """As :meth:`positions`, from one monotone PCHIP over all loops (they share the knots), built
+        once per alignment (``src`` and ``target`` are not changed after :func:`align`)."""
+        if self._pchip is None:
+            self._pchip = PchipInterpolator(self.target, self.src.T, axis=0)
+        pos: FloatArray = self._pchip(u).T
         return pos
 
 
@@ -173,6 +178,35 @@ def align(h: FloatArray, g: FloatArray, loops: list[tuple[float, float]], period
     if np.any(np.diff(target) <= 0):
         target = np.linspace(0.0, 1.0, n_anchor + 2)
     return Alignment(loops=list(loops), src=src, target=target)
+
+
+def alternation(zv: FloatArray, al: Alignment, ks: list[int], m: int, j: int) -> tuple[float, float]:
+    """Whether loops alternate with ``j`` parts: the loops, warped onto the common timeline, grouped by
+    their index in the performance modulo ``j`` (``ks``: a missed loop leaves a hole, so groups follow
+    the loops performed, not their places in the list), and compared as a one-way analysis of variance.
+
+    Returns ``(F, effect)``: F is the variance between the groups' average loops over the variance
+    inside the groups, each per degree of freedom, so about 1 when every loop is the same motion
+    (the loop-to-loop differences of tempo and noise fall inside the groups as much as between them)
+    and far above 1 at a wrong sub-period of ``j`` parts; effect is the between-group part as a share
+    of the loops' variance (a large F of a negligible difference is no alternation). ``(nan, 0)`` when
+    a group has fewer than two loops."""
+    g = np.mod(np.asarray(ks), j)
+    count = np.bincount(g, minlength=j)
+    if count.size > j or count.min() < 2:
+        return float("nan"), 0.0
+    u = np.linspace(0.0, 1.0, m + 1)
+    pos = al.positions(u)
+    stack = at_positions(zv, pos.reshape(-1)).reshape(pos.shape[0], m + 1, -1)
+    grand = stack.mean(axis=0)
+    var = float(np.mean(np.sum((stack - stack.mean(axis=(0, 1))) ** 2, axis=2)))
+    means = np.stack([stack[g == q].mean(axis=0) for q in range(j)])
+    between = float(np.sum(count[:, None, None] * (means - grand) ** 2))
+    within = float(sum(np.sum((stack[g == q] - means[q]) ** 2) for q in range(j)))
+    effect = between / (len(ks) * (m + 1)) / var if var > 0 else 0.0
+    if not within > 0:
+        return (float("inf") if between > 0 else float("nan")), effect
+    return (between / (j - 1)) / (within / (len(ks) - j)), effect
 
 
 def warped_consistency(zv: FloatArray, al: Alignment, m: int) -> tuple[float, FloatArray]:

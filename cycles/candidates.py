@@ -15,13 +15,17 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy import signal
 
 from cycles.descriptor import parabolic_offset
 
 if TYPE_CHECKING:
     from cycles._types import FloatArray
 
-__all__ = ["acf_candidates", "principal_subspace"]
+__all__ = ["MIN_PROMINENCE", "acf_candidates", "principal_subspace"]
+
+#: how far an autocorrelation peak must rise above the troughs on either side to be a candidate
+MIN_PROMINENCE = 0.05
 
 
 def principal_subspace(z: FloatArray, r: int, rng: np.random.Generator) -> FloatArray:
@@ -55,7 +59,10 @@ def acf_candidates(feat: FloatArray, lo: int, hi: int, limit: int) -> list[float
     if hi <= lo:
         return []
     seg = ac_u[lo - 1:hi + 2]
-    pk = np.flatnonzero((seg[1:-1] > seg[:-2]) & (seg[1:-1] >= seg[2:]) & (seg[1:-1] > 0.05)) + lo
+    # peaks that stand out from the curve around them: a wiggle of noise on the slope of the main lobe
+    # (the autocorrelation falling from lag 0 at a high rate) is a local maximum but no repetition
+    found, _ = signal.find_peaks(seg, height=0.05, prominence=MIN_PROMINENCE)
+    pk = found[(found >= 1) & (found <= seg.size - 2)] - 1 + lo
     if pk.size == 0:
         return []
     # the earliest strong peaks (a long take has peaks at every multiple of the period, all about as

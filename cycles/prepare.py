@@ -2,8 +2,9 @@
 
 This module owns step 1 of :func:`cycles.extract` (Ciccone 2019 leaves it out: section 5.3 starts from
 clean vectors on a uniform grid; perfcap's choices are in ``docs/design/cycles.md``): ``prepare`` leaves
-out non-finite samples and repeated stamps, keeps the longest stretch without a gap, resamples irregular
-stamps to a uniform grid, unwraps Euler angles and maps each quaternion to rotation vectors about the
+out non-finite samples and repeated stamps, keeps every stretch between gaps (one after another, their
+starts and times in ``Prepared.starts`` and ``start_t``; ``Prepared.times`` maps rows back), resamples
+irregular stamps to a uniform grid, unwraps Euler angles and maps each quaternion to rotation vectors about the
 take's chordal mean (hemisphere-continuous), so that everything after works on plain vectors;
 ``to_input`` undoes the mapping for the finished loop. ``interp_rows`` and ``at_positions`` are the linear
 interpolation the other steps share.
@@ -11,8 +12,9 @@ interpolation the other steps share.
 
 from __future__ import annotations
 
+import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -23,9 +25,12 @@ from capture.errors import NoPeriodFoundError
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from cycles._types import FloatArray
+    from cycles._types import FloatArray, IntArray
 
-__all__ = ["Prepared", "at_positions", "interp_rows", "prepare", "to_input"]
+__all__ = ["MIN_STRETCH", "Prepared", "at_positions", "interp_rows", "prepare", "to_input"]
+
+#: the fewest samples a stretch between gaps needs to be kept
+MIN_STRETCH = 8
 
 
 @dataclass
@@ -37,6 +42,18 @@ class Prepared:
     q_refs: dict[int, Rotation]       # working col start -> reference rotation
     angle_scale: float
     notes: list[str]
+    # the stretches of the take between gaps, one after the other in x: the row each starts at and
+    # its time; the grid step of x (``dt`` is the matching's step, which extract may change)
+    starts: IntArray = field(default_factory=lambda: np.zeros(1, np.intp))
+    start_t: FloatArray = field(default_factory=lambda: np.zeros(1))
+    grid_dt: float = 0.0
+
+    def times(self, rows: FloatArray) -> FloatArray:
+        """The input's times of (fractional) rows of ``x``: each row in its stretch's time base."""
+        r = np.asarray(rows, np.float64)
+        i = np.clip(np.searchsorted(self.starts, np.floor(r + 1e-9), side="right") - 1, 0, self.starts.size - 1)
+        out: FloatArray = self.start_t[i] + (r - self.starts[i]) * self.grid_dt
+        return out
 
 
 def prepare(t: FloatArray, v: FloatArray, quaternions: Sequence[Sequence[int]], angles: Sequence[int],
@@ -66,19 +83,24 @@ def prepare(t: FloatArray, v: FloatArray, quaternions: Sequence[Sequence[int]], 
     gap_at = max(gap_factor * usual, min_gap_s)
     gaps = np.flatnonzero(dt_all > gap_at)
     dt = med if usual == med else float(np.mean(dt_all[dt_all <= gap_factor * usual]))
+    # Every stretch between gaps is kept (a performer who stops the recording and starts again loops
+    # on both sides); the stretches follow one another in x, and the matching treats each joint as a
+    # break that no loop crosses. Stretches too short for any loop (under MIN_STRETCH samples) are
+    # left out.
+    bounds = np.concatenate([[0], gaps + 1, [t.size]])
+    pieces = [(int(a), int(b)) for a, b in itertools.pairwise(bounds) if b - a >= MIN_STRETCH]
     if gaps.size:
-        bounds = np.concatenate([[0], gaps + 1, [t.size]])
-        spans = t[bounds[1:] - 1] - t[bounds[:-1]]
-        b = int(np.argmax(spans))
-        lo, hi = int(bounds[b]), int(bounds[b + 1])
+        dropped = int(t.size - sum(b - a for a, b in pieces))
         notes.append(f"the take has {gaps.size} gap(s) longer than {gap_at:.3g} s (the longest"
-                     f" {float(dt_all[gaps].max()):.3g} s); used the longest stretch without one,"
-                     f" {float(t[lo]):.3f}-{float(t[hi - 1]):.3f} s")
-        t, v = t[lo:hi], v[lo:hi]
-        if t.size < 8:
+                     f" {float(dt_all[gaps].max()):.3g} s); its {len(pieces)} stretch(es) are matched as one"
+                     f" take with breaks no loop crosses"
+                     + (f"; {dropped} sample(s) in stretches too short for a loop left out" if dropped else ""))
+        if not pieces:
             raise NoPeriodFoundError("no stretch of the take without a gap is long enough for a cycle")
-        steps_in = np.diff(t)
+        steps_in = np.concatenate([np.diff(t[a:b]) for a, b in pieces])
         dt = float(np.median(steps_in)) if usual == med else float(np.mean(steps_in))
+    if sum(b - a for a, b in pieces) < 8:
+        raise NoPeriodFoundError("no stretch of the take without a gap is long enough for a cycle")
 
     qcols = [list(q) for q in quaternions]
     flat_q = [i for q in qcols for i in q]
@@ -137,13 +159,22 @@ def prepare(t: FloatArray, v: FloatArray, quaternions: Sequence[Sequence[int]], 
     for wc, val in blocks:
         x[:, wc] = val
 
-    steps = np.diff(t)
-    if np.max(np.abs(steps - dt)) > 1e-3 * dt:
-        m = math.floor((t[-1] - t[0]) / dt + 1e-9) + 1
-        grid = t[0] + dt * np.arange(m)
-        x = interp_rows(t, x, grid)
-    return Prepared(t0=float(t[0]), dt=dt, x=np.ascontiguousarray(x), columns=columns, q_refs=q_refs,
-                 angle_scale=angle_scale, notes=notes)
+    rows, starts, start_t = [], [], []
+    at = 0
+    for a, b in pieces:
+        ts, xs = t[a:b], x[a:b]
+        steps = np.diff(ts)
+        if np.max(np.abs(steps - dt)) > 1e-3 * dt:
+            m = math.floor((ts[-1] - ts[0]) / dt + 1e-9) + 1
+            xs = interp_rows(ts, xs, ts[0] + dt * np.arange(m))
+        rows.append(xs)
+        starts.append(at)
+        start_t.append(float(ts[0]))
+        at += xs.shape[0]
+    x = rows[0] if len(rows) == 1 else np.concatenate(rows)
+    return Prepared(t0=start_t[0], dt=dt, x=np.ascontiguousarray(x), columns=columns, q_refs=q_refs,
+                    angle_scale=angle_scale, notes=notes, starts=np.asarray(starts, np.intp),
+                    start_t=np.asarray(start_t), grid_dt=dt)
 
 
 def interp_rows(t: FloatArray, x: FloatArray, at: FloatArray) -> FloatArray:

@@ -106,3 +106,94 @@ def jittered_loops(n_loops: int = 4, *, period_s: float = 1.0, jitter: float = 0
     vals = take.template(take.phase_at(t_true) + start) + rng.normal(0.0, noise, (t.size, channels))
     return LoopTake(t=t, values=vals, durations_s=durations, boundaries_s=bounds, start_phase=start,
                     amplitudes=amp, phases=ph)
+
+
+#: the seeded families the cycle extraction sweeps run on (tests and ``benchmarks/bench_cycle_sweep.py``)
+SWEEP_RATES_HZ = (50.0, 60.0, 100.0, 120.0, 200.0)
+#: in ``random_harmonic_take`` every channel's fundamental is at least this share of its largest harmonic
+MIN_FUNDAMENTAL = 0.25
+
+
+@dataclass(frozen=True)
+class SweepTake:
+    """One take of a seeded family, with what it is (for messages)."""
+
+    t: np.ndarray
+    values: np.ndarray
+    period_s: float             # the truth (the mean loop duration); NaN for takes with no period
+    about: dict[str, float]
+
+
+def random_harmonic_take(seed: int) -> SweepTake:
+    """A jittered take whose loop shape has random harmonic content in which a higher harmonic may
+    dominate: 1-12 channels, 3-8 whole loops of a nominal 0.4-2.5 s, each loop +-10 %, 1-5
+    harmonics with amplitudes uniform in [0, 1] (the fundamental at least ``MIN_FUNDAMENTAL`` of each
+    channel's largest, so the take's period is the loop's and not a part of it), value noise of
+    standard deviation 0-0.1 (the largest harmonic's amplitude is 1), sampled at one of
+    ``SWEEP_RATES_HZ`` with the stamps' usual jitter."""
+    rng = np.random.default_rng(seed)
+    channels = int(rng.integers(1, 13))
+    n_loops = int(rng.integers(3, 9))
+    harmonics = int(rng.integers(1, 6))
+    period = float(rng.uniform(0.4, 2.5))
+    rate = float(rng.choice(SWEEP_RATES_HZ))
+    noise = float(rng.uniform(0.0, 0.1))
+    base = jittered_loops(n_loops, period_s=period, jitter=0.1, rate_hz=rate, channels=channels,
+                          harmonics=harmonics, noise=0.0, seed=seed)
+    amp = rng.uniform(0.0, 1.0, (channels, harmonics))
+    amp[:, 0] = np.maximum(amp[:, 0], MIN_FUNDAMENTAL * amp.max(axis=1))
+    amp /= amp.max(axis=1, keepdims=True)
+    shape = LoopTake(t=base.t, values=base.values, durations_s=base.durations_s, boundaries_s=base.boundaries_s,
+                     start_phase=base.start_phase, amplitudes=amp,
+                     phases=rng.uniform(0.0, 2 * np.pi, (channels, harmonics)))
+    values = shape.template(shape.phase_at(base.t) + base.start_phase)
+    values = values + rng.normal(0.0, noise, values.shape)
+    about = {"channels": channels, "loops": n_loops, "harmonics": harmonics, "noise": round(noise, 3), "rate_hz": rate}
+    return SweepTake(base.t, values, base.period_s, about)
+
+
+def random_walk_take(seed: int) -> SweepTake:
+    """A take with no period: 1-12 channels of 200-3,000 samples at 50-200 Hz of a Gaussian random
+    walk, an integrated one (smooth, like a drifting position) or a walk with heavy-tailed steps
+    (Student's t, 2 degrees of freedom: long still stretches and jumps), by ``seed % 3``."""
+    rng = np.random.default_rng(seed)
+    channels = int(rng.integers(1, 13))
+    n = int(rng.integers(200, 3001))
+    rate = float(rng.choice((50.0, 100.0, 120.0, 200.0)))
+    kind = seed % 3
+    x = np.cumsum(rng.normal(0.0, 1.0, (n, channels)), axis=0)
+    if kind == 1:
+        x = np.cumsum(x, axis=0)
+    elif kind == 2:
+        x = np.cumsum(rng.standard_t(2, (n, channels)), axis=0)
+    return SweepTake(np.arange(n) / rate, x, float("nan"),
+                     {"channels": channels, "samples": n, "rate_hz": rate, "kind": kind})
+
+
+def paused_take(seed: int) -> SweepTake:
+    """Loops, one long pause, loops again: 3-6 jittered loops on each side (one performance, 1-12
+    channels, noise 0-0.05, 50-200 Hz) around either a stillness (the pose held, with sensor noise)
+    or a gap in the stamps (the recording stopped), of 2-10 loops or 5-40 s, whichever is longer, by
+    ``seed % 2``. ``about`` holds the pause's start and end times (s)."""
+    rng = np.random.default_rng(seed)
+    channels = int(rng.integers(1, 13))
+    before, after = int(rng.integers(3, 7)), int(rng.integers(3, 7))
+    period = float(rng.uniform(0.4, 2.0))
+    rate = float(rng.choice(SWEEP_RATES_HZ))
+    noise = float(rng.uniform(0.0, 0.05))
+    take = jittered_loops(before + after, period_s=period, rate_hz=rate, channels=channels, noise=noise, seed=seed)
+    split = float(take.boundaries_s[before])
+    pause = max(float(rng.uniform(2.0, 10.0)) * period, float(rng.uniform(5.0, 40.0)))
+    i = int(np.searchsorted(take.t, split))
+    t = take.t.copy()
+    t[i:] += pause
+    values = take.values
+    if seed % 2 == 0:   # the pose held: samples through the pause
+        dt = 1.0 / rate
+        held_t = split + dt * np.arange(1, int(pause / dt))
+        held = values[i - 1] + rng.normal(0.0, max(noise, 1e-3), (held_t.size, channels))
+        t = np.concatenate([t[:i], held_t, t[i:]])
+        values = np.concatenate([values[:i], held, values[i:]])
+    return SweepTake(t, values, take.period_s, {"channels": channels, "before": before, "after": after,
+                                              "rate_hz": rate, "pause_from": split, "pause_to": split + pause,
+                                              "held": float(seed % 2 == 0)})

@@ -185,13 +185,16 @@ def test_white_noise_has_no_cycle(tmp_path, capsys):
     assert "no cycle" in one_line(err)
 
 
-@pytest.mark.parametrize("kind", ["white noise", "still"])
+@pytest.mark.parametrize("kind", ["white noise", "random walk", "still"])
 @pytest.mark.parametrize("seed", range(3))
 def test_json_says_no_cycle_as_one_object_too(tmp_path, capsys, kind, seed):
     rng = np.random.default_rng(seed)
     t = np.arange(1500) / 100.0
-    # (random walks are not among them: some are still taken as periodic, issue 17's cycle item)
-    x = rng.standard_normal((t.size, 2)) if kind == "white noise" else np.full((t.size, 2), 1.5)
+    # (the random walk of seed 1 was once taken as periodic; tests/unit/cycles/test_extract_sweeps.py
+    # holds the family)
+    x = (rng.standard_normal((t.size, 2)) if kind == "white noise"
+         else np.cumsum(rng.standard_normal((t.size, 2)), axis=0) if kind == "random walk"
+         else np.full((t.size, 2), 1.5))
     p = write_csv(tmp_path / "in.csv", ["t", "x", "y"], [[ti, *row] for ti, row in zip(t, x, strict=True)])
     code, out, err = run(capsys, "cycle", p, "--json")
     assert code == 1 and "no cycle" in one_line(err)

@@ -211,10 +211,12 @@ def test_bit_identical_for_a_seed_and_scales_with_time() -> None:
     assert a.period_s == b.period_s and np.array_equal(a.values, b.values) and np.array_equal(a.cuts_s, b.cuts_s)
     s = 2.5
     c = extract(tk.t * s, tk.values, seed=3)
-    # equal up to rounding (the descriptor sees derivatives in other units)
-    assert abs(c.period_s / (a.period_s * s) - 1) < 1e-4
+    # equal up to rounding: the descriptor sees derivatives in other units, so the anchors that align
+    # the loops may settle a fraction of a sample apart (0.1 % of the period here, a tenth of a sample)
+    assert abs(c.period_s / (a.period_s * s) - 1) < 2e-3
     assert c.loops == a.loops
-    np.testing.assert_allclose(c.values, a.values, atol=1e-3)
+    phase = np.linspace(0.0, 1.0, 200, endpoint=False)
+    np.testing.assert_allclose(c.at(phase * c.period_s), a.at(phase * a.period_s), atol=0.02)
 
 
 def test_irregular_timestamps_agree_with_a_uniform_grid() -> None:
@@ -281,13 +283,28 @@ def test_wide_inputs(channels: int) -> None:
 # -- gaps and notes
 
 
-def test_a_gap_limits_the_take_to_its_longest_stretch() -> None:
+def test_a_gap_is_a_break_no_loop_crosses() -> None:
     tk = jittered_loops(8, channels=2, noise=0.02, seed=4)
     keep = (tk.t < 0.5) | (tk.t > 1.0)
     c = extract(tk.t[keep], tk.values[keep])
     assert any("gap" in n for n in c.notes)
+    # the half loop before the gap holds no loop; none is cut across the gap
     assert c.loop_spans_s.min() >= 1.0
     assert abs(rel_err(c, tk.period_s)) < 0.03
+
+
+def test_loops_on_both_sides_of_a_gap_keep_their_times() -> None:
+    tk = jittered_loops(8, channels=3, noise=0.02, seed=5)
+    cut = tk.boundaries_s[4] + 0.3 * tk.period_s
+    t = np.where(tk.t < cut, tk.t, tk.t + 20.0)    # the recording stopped for 20 s
+    c = extract(t, tk.values)
+    spans = c.loop_spans_s
+    assert np.any(spans[:, 1] <= cut) and np.any(spans[:, 0] >= cut + 20.0)
+    assert not np.any((spans[:, 0] < cut) & (spans[:, 1] > cut + 20.0))
+    # each cut is a time of the input: the performer's loop phase there is the same everywhere
+    ph = np.mod(tk.phase_at(np.where(c.cuts_s < cut, c.cuts_s, c.cuts_s - 20.0)), 1.0)
+    assert np.ptp(np.angle(np.exp(2j * np.pi * (ph - ph[0])))) / (2 * np.pi) < 0.05
+    assert abs(rel_err(c, tk.period_s)) < 0.01
 
 
 def test_unsorted_duplicated_and_nan_samples_are_dropped_with_a_note() -> None:
