@@ -101,6 +101,8 @@ def decode_raw_block_run(data: bytes) -> ChunkRun:
     """A raw block as a ``ChunkRun`` (no per-chunk objects)."""
     data = bytes(data)
     mv = memoryview(data)
+    if len(mv) < _hdr_raw.size:
+        raise ValueError(f"raw block of {len(mv)} bytes, shorter than its header")
     (n,) = _hdr_raw.unpack_from(mv, 0)
     o = _hdr_raw.size
     if o + 13 * n > len(data):   # a count the block cannot hold: refused before anything is allocated
@@ -199,6 +201,8 @@ def encode_sample_block(b: SampleBatch, quantum: tuple[float, ...] | None = None
 
 def decode_sample_block(stream: str, data: bytes) -> SampleBatch:
     mv = memoryview(data)
+    if len(mv) < _hdr_samples.size:
+        raise ValueError(f"sample block of {stream}: {len(mv)} bytes, shorter than its header")
     n, c, flags = _hdr_samples.unpack_from(mv, 0)
     if not flags & 4:
         raise ValueError(f"sample block of {stream}: unknown value layout (flags {flags})")
@@ -219,6 +223,8 @@ def decode_sample_block(stream: str, data: bytes) -> SampleBatch:
     stride_q = _q.size + 4 * n
     j = 0
     while j < c:
+        if o >= len(mv):
+            raise ValueError(f"sample block of {stream} ends after {j} of its {c} columns")
         mode = mv[o]
         if mode == 1:
             # a run of integer columns: decode them together
