@@ -13,6 +13,11 @@ Layout of a perfcap session (MCAP profile ``perfcap``):
 * channel ``/events`` (JSON): device state changes, protocol errors, overflows, notes.
 * metadata ``perfcap.summary`` when the take ended cleanly.
 
+Every message's MCAP log time, and its publish time, is its first time (a block's first bus time, a
+chunk's arrival, an event's time) on the wall clock in UTC ns, never before the channel's previous one:
+host time + ``log_time_offset_ns`` from ``perfcap.session`` (sessions written before it carry host times
+there). perfcap's readers do not use them; viewers place the messages on their timeline by them.
+
 The definitions (session metadata, devices, channels) are repeated outside the chunks as CRC-checked
 ``perfcap.definitions`` metadata after the flushes that follow a change, so no single chunk or
 record holds the only copy (``session_scan`` reads around damage).
@@ -55,6 +60,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = "1"
+#: session metadata key: MCAP log time minus host time, ns (sessions before it used the host time itself)
+LOG_TIME_OFFSET_KEY = "log_time_offset_ns"
 RAW_ENCODING = "perfcap.raw.v1"
 SAMPLES_ENCODING = "perfcap.samples.v1"
 
@@ -281,6 +288,10 @@ class SessionWriter:
         chunk_bytes: MCAP chunk size before compression.
         fsync: fsync the file at every flush (survives power loss, not only a killed process).
         meta: extra session metadata (command line, config).
+        wall_time_s: the wall clock at the start (default: now).
+        host_now_ns: the host clock (the one samples are stamped on) when ``wall_time_s`` was read
+            (default: the monotonic clock now). Together they map the host clock to UTC: every message's
+            MCAP log time is its time on the wall clock, so a viewer's timeline shows when it happened.
         base_dir: confine ``path`` to this directory, never following a link on the way (``perfcap
             serve``'s sessions directory).
 
@@ -292,7 +303,7 @@ class SessionWriter:
 
     def __init__(self, path: str, *, overwrite: bool = False, chunk_bytes: int = 4 << 20, fsync: bool = True,
                  meta: dict[str, str] | None = None, wall_time_s: float | None = None,
-                 base_dir: str | None = None) -> None:
+                 base_dir: str | None = None, host_now_ns: int | None = None) -> None:
         self.fsync = fsync
         target = resolve_target(path, base_dir)
         try:
@@ -304,7 +315,7 @@ class SessionWriter:
         self._f = pending.file
         self.closed = False
         try:
-            self._start(chunk_bytes, meta, wall_time_s)
+            self._start(chunk_bytes, meta, wall_time_s, host_now_ns)
             self._sync()   # the header on disk before the file has its name
             pending.publish()
         except OSError as exc:
@@ -325,15 +336,20 @@ class SessionWriter:
             self._f.sync()
         self._f.commit()
 
-    def _start(self, chunk_bytes: int, meta: dict[str, str] | None, wall_time_s: float | None) -> None:
+    def _start(self, chunk_bytes: int, meta: dict[str, str] | None, wall_time_s: float | None,
+               host_now_ns: int | None) -> None:
         from mcap.writer import CompressionType, Writer
 
         # the mcap writer uses write, tell and flush: what SessionFile has
         self._w = Writer(cast("BinaryIO", self._f), chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._w.start(profile="perfcap", library="perfcap")
         from capture import __version__
+        host0 = MONOTONIC.now_ns() if host_now_ns is None else host_now_ns
+        wall0 = wall_time_s if wall_time_s is not None else MONOTONIC.wall_time_s()
+        #: MCAP log time = host time + this (UTC ns); recorded, so a reader can map back
+        self.log_time_offset_ns = round(wall0 * 1e9) - host0
         m = {"format_version": FORMAT_VERSION, "perfcap_version": __version__, "host": socket.gethostname(),
-             "start_wall_time_s": repr(wall_time_s if wall_time_s is not None else MONOTONIC.wall_time_s())}
+             "start_wall_time_s": repr(wall0), LOG_TIME_OFFSET_KEY: str(self.log_time_offset_ns)}
         m.update(meta or {})
         self._w.add_metadata("perfcap.session", m)
         self._note_definitions("session", m)
@@ -343,6 +359,7 @@ class SessionWriter:
         self._quantum: dict[str, tuple[float, ...] | None] = {}
         self._events = self._w.register_channel("/events", "json", 0)
         self._seqs: dict[int, int] = {}
+        self._last_log: dict[int, int] = {}
         self.bytes_raw = 0
         self.closed = False
 
@@ -379,9 +396,15 @@ class SessionWriter:
         return f"/samples/{name}" in self._channels
 
     def _add(self, cid: int, t: int, data: bytes, now_ns: int) -> None:
+        # log time: the message's first time (a block's first bus time, a chunk's arrival, an event's
+        # time) on the wall clock, never before the channel's previous one (a clock reset may step bus
+        # times back); publish time the same, as it is published at its time in the take's timeline
+        # (``now_ns``, when the recorder wrote it, is later by the recorder's batching)
         seq = self._seqs.get(cid, 0)
         self._seqs[cid] = seq + 1
-        self._w.add_message(cid, log_time=max(t, 0), data=data, publish_time=max(now_ns, 0), sequence=seq)
+        log = max(t + self.log_time_offset_ns, self._last_log.get(cid, 0), 0)
+        self._last_log[cid] = log
+        self._w.add_message(cid, log_time=log, data=data, publish_time=log, sequence=seq)
 
     def write_raw(self, device: str, chunks: list[Chunk], now_ns: int) -> None:
         cid = self._channels.get(f"/raw/{device}")

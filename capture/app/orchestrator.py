@@ -223,7 +223,7 @@ class Capture:
         writer = None
         if output is not None:  # before any thread starts: a bad path must leave nothing running
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
-                                   wall_time_s=clock.wall_time_s())
+                                   wall_time_s=clock.wall_time_s(), host_now_ns=clock.now_ns())
         self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
         self.processors: list[Processor] = []
         self.orientation: OrientationProcessor | None = None
@@ -337,7 +337,8 @@ class Capture:
             if self.recorder is not None:
                 raise ConfigError(f"already recording to {self.output}; stop that recording first")
             writer = SessionWriter(output, overwrite=overwrite, fsync=self._fsync, meta=meta,
-                                   wall_time_s=self.clock.wall_time_s(), base_dir=base_dir)
+                                   wall_time_s=self.clock.wall_time_s(), host_now_ns=self.clock.now_ns(),
+                                   base_dir=base_dir)
             try:
                 self._attach_recorder(writer)
             except BaseException:
