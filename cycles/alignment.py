@@ -193,7 +193,7 @@ def alternation(zv: FloatArray, al: Alignment, ks: list[int], m: int, j: int) ->
     a group has fewer than two loops."""
     g = np.mod(np.asarray(ks), j)
     count = np.bincount(g, minlength=j)
-    if count.size > j or count.min() < 2:
+    if count.min() < 2:
         return float("nan"), 0.0
     u = np.linspace(0.0, 1.0, m + 1)
     pos = al.positions(u)

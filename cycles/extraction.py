@@ -477,10 +477,10 @@ def _extract(work: Prepared, names: tuple[str, ...], opts: ExtractOptions, seed:
         raise NoPeriodFoundError(f"the take ({n * work.dt:.3g} s) is too short for two loops of at least"
                                  f" {t_min * work.dt:.3g} s")
 
-    # the moving part of the take (a performer may stand still before and after looping, or between)
-    # Moving: the radius-k smoothed derivative is not small, and neither is the change over an eighth
+    # The moving part of the take (a performer may stand still before and after looping, or between):
+    # where the radius-k smoothed derivative is not small, and neither is the change over an eighth
     # of the shortest repetition (at a high rate, sensor noise in a held pose changes as much in k
-    # samples as the motion does; over the longer reach it does not). Pauses are found from the reach.
+    # samples as the motion does; over the longer reach it does not). Pauses are found per candidate.
     speed = np.linalg.norm(h[:, k * z.shape[1]:], axis=1)
     reach = _speed(z, max(k, round(min(lags) / 8)) if lags else k)
     reach_moving = reach > 0.1 * np.percentile(reach, 95)
@@ -601,11 +601,12 @@ def _extract(work: Prepared, names: tuple[str, ...], opts: ExtractOptions, seed:
     def may_beat(o: _Candidate, c: _Candidate) -> bool:
         if o.unexplained * 1.5 + opts.candidate_margin >= c.unexplained:
             return False
-        # (an untested j, or one whose F is above ALTERNATION_F though the difference is small); a
-        # period that is no multiple of the shorter one is no such trap
+        # three loops or more, or a period that is no multiple of the shorter one: no such trap
         ratio = o.period / c.period
         if len(o.loops) >= 3 or abs(ratio - round(ratio)) > 0.1 * ratio:
             return True
+        # two loops at a multiple j: only where c could not be tested at j, or its F there is above
+        # ALTERNATION_F (the difference too small to call it a part outright)
         return any(abs(o.period - j * c.period) <= 0.1 * o.period
                    for j, f in c.doubt.items() if not f <= ALTERNATION_F)
 

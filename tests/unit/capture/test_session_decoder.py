@@ -26,10 +26,13 @@ ROLLER = TRACES / "b_hid" / "hid_recorder" / "contour_rollermouse_red_doubleclic
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    missing = [str(p) for p in (MOUSE, ROLLER) if not p.exists()]
+    if missing:
+        pytest.skip(f"{', '.join(missing)} not found (../shared/traces must sit beside the project)")
     urls = ["w=witmotion@synth://imu?realtime=false&duration=2&rate=100&device_clock=true",
-            "a=synth://imu?rate=100&seed=1&realtime=false&duration=2"]
-    urls += [f"m=hid@simhid://mouse?evemu={MOUSE}&realtime=false&latency_ms=0"] if MOUSE.exists() else []
-    urls += [f"r=hid@simhid://{ROLLER}?realtime=false&latency_ms=0"] if ROLLER.exists() else []
+            "a=synth://imu?rate=100&seed=1&realtime=false&duration=2",
+            f"m=hid@simhid://mouse?evemu={MOUSE}&realtime=false&latency_ms=0",
+            f"r=hid@simhid://{ROLLER}?realtime=false&latency_ms=0"]
     out = tmp_path_factory.mktemp("dec") / "take.mcap"
     rep = Capture(urls, output=str(out), fsync=False).run(None)
     assert rep.recorder_error is None

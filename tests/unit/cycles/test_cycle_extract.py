@@ -6,22 +6,17 @@ thesis's plain period search finds nothing."""
 
 from __future__ import annotations
 
-import csv
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from gait_helpers import GAIT_IMU, GAIT_MOCAP, gait_strides
 
 from capture.errors import NoMotionError, NoPeriodFoundError
 from cycles import Cycle, ExtractOptions, extract, layer_onto
 from cycles.descriptor import descriptors, distance_rows, distances_to, otsu_threshold
 from cycles.matching import smallest_feasible_period
 from sim_devices.loops import jittered_loops
-
-TRACES = Path(__file__).resolve().parents[4] / "shared" / "traces"
-GAIT_IMU = TRACES / "a_imu_csv" / "gaitmap_walk"
-GAIT_MOCAP = TRACES / "d_mocap_cyclic" / "gaitmap_walk"
 
 
 def rel_err(c: Cycle, truth: float) -> float:
@@ -357,13 +352,6 @@ def _gait() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
     return imu[:, 0] / 204.8, imu[:, 1:], mo[:, 0] / 100.0, mo, hdr
 
 
-def _strides(foot: str) -> np.ndarray:
-    # the borders are sample indices at the IMU's 204.8 Hz in both folders
-    with (GAIT_IMU / "stride_borders_sample.csv").open() as f:
-        rows = [r for r in csv.DictReader(f) if r["foot"] == foot]
-    return np.array([[float(r["start"]), float(r["end"])] for r in rows]) / 204.8
-
-
 @pytest.mark.parametrize("foot", ["left", "right"])
 @pytest.mark.parametrize("source", ["imu", "mocap"])
 def test_gaitmap_walk_whole_take(foot: str, source: str) -> None:
@@ -373,7 +361,7 @@ def test_gaitmap_walk_whole_take(foot: str, source: str) -> None:
     else:
         cols = [i for i, h in enumerate(hdr) if h.startswith(foot[0].upper() + "_")]
         t, x = t_mo, mo[:, cols]
-    b = _strides(foot)
+    b = gait_strides(foot)
     truth = float(np.median(b[:, 1] - b[:, 0]))
     c = extract(t, x)
     assert abs(rel_err(c, truth)) < 0.005, (c.period_s, truth)

@@ -10,19 +10,15 @@ these. Each test sweeps every seed and reports all the failures at once.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from gait_helpers import IMU_HZ, TRACES, gait_imu, gait_strides
 
 from capture.errors import NoMotionError, NoPeriodFoundError
 from cycles import extract
 from sim_devices.loops import paused_take, random_harmonic_take, random_walk_take
 
-TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "traces"
-GAIT = TRACES / "a_imu_csv" / "gaitmap_walk"
 IPHONE = TRACES / "e_smartphone" / "dispel_ads_iphonex_sbt_utt_example.json"
-IMU_HZ = 204.8
 
 #: a period further than this from the truth is a gross error (a half is -50 %, a double +100 %)
 GROSS = 0.1
@@ -76,29 +72,17 @@ def test_one_long_pause_keeps_the_loops_on_both_sides() -> None:
     assert len(bad) <= 3 and all(b[1]["channels"] == 1 for b in bad), bad
 
 
-def _gaitmap() -> tuple[list[str], np.ndarray, dict[str, float]]:
-    path = GAIT / "imu_sample_not_rotated.csv"
-    if not path.exists():
-        pytest.skip(f"{path} not found (../shared/traces must sit beside the project)")
-    with path.open() as f:
-        top = f.readline().strip().split(",")
-    data = np.loadtxt(path, delimiter=",", skiprows=2)
-    strides: dict[str, list[float]] = {}
-    with (GAIT / "stride_borders_sample.csv").open() as f:
-        head = f.readline().strip().split(",")
-        for line in f:
-            row = dict(zip(head, line.strip().split(","), strict=True))
-            strides.setdefault(row["foot"], []).append((float(row["end"]) - float(row["start"])) / IMU_HZ)
-    return top, data, {k: float(np.median(v)) for k, v in strides.items()}
+def _truth(foot: str) -> float:
+    b = gait_strides(foot)
+    return float(np.median(b[:, 1] - b[:, 0]))
 
 
 @pytest.mark.parametrize("foot", ["left", "right"])
 @pytest.mark.parametrize("kind", ["held", "stopped"])
 def test_a_real_walk_with_a_30_s_pause_uses_both_halves(foot: str, kind: str) -> None:
-    top, data, truth = _gaitmap()
-    cols = [i for i, name in enumerate(top) if name == f"{foot}_sensor"]
+    t, data, sensor, _ = gait_imu()
+    cols = [i for i, name in enumerate(sensor) if name == f"{foot}_sensor"]
     x = data[:, cols]
-    t = data[:, 0] / IMU_HZ
     half, pause = x.shape[0] // 2, 30.0
     if kind == "held":   # the walker stands still for 30 s: the sensor still reports, at rest
         rng = np.random.default_rng(0)
@@ -111,17 +95,16 @@ def test_a_real_walk_with_a_30_s_pause_uses_both_halves(foot: str, kind: str) ->
     c = extract(t, x)
     split, resume = t[half - 1], t[half - 1] + pause
     assert np.any(c.loop_spans_s[:, 1] <= split) and np.any(c.loop_spans_s[:, 0] >= resume)
-    assert abs(c.period_s / truth[foot] - 1) < 0.01, (c.period_s, truth[foot])
+    assert abs(c.period_s / _truth(foot) - 1) < 0.01, (c.period_s, _truth(foot))
 
 
 @pytest.mark.parametrize("foot", ["left", "right"])
 def test_a_real_gyroscope_walk_gives_the_stride_not_a_multiple(foot: str) -> None:
-    top, data, truth = _gaitmap()
-    sub = np.loadtxt(GAIT / "imu_sample_not_rotated.csv", delimiter=",", skiprows=1, max_rows=1, dtype=str)
-    cols = [i for i, name in enumerate(top) if name == f"{foot}_sensor" and sub[i].startswith("gyr")]
+    t, data, sensor, axis = gait_imu()
+    cols = [i for i, name in enumerate(sensor) if name == f"{foot}_sensor" and axis[i].startswith("gyr")]
     assert len(cols) == 3
-    c = extract(data[:, 0] / IMU_HZ, data[:, cols])
-    assert abs(c.period_s / truth[foot] - 1) < 0.01, (c.period_s, truth[foot])
+    c = extract(t, data[:, cols])
+    assert abs(c.period_s / _truth(foot) - 1) < 0.01, (c.period_s, _truth(foot))
     assert c.loops >= 20
 
 
