@@ -5,13 +5,18 @@ Layout of a perfcap session (MCAP profile ``perfcap``):
 * metadata ``perfcap.session``: format version, perfcap version, start wall time, host, command.
 * metadata ``device:<name>``: kind, transport URL, options, identity, stream names; descriptors
   (report descriptors, calibration) as attachments ``<name>/<key>``.
-* channel ``/raw/<device>`` (encoding ``perfcap.raw.v1``): every transport chunk with its arrival
+* channel ``/raw/<device>`` (protobuf ``perfcap.RawBlock``): every transport chunk with its arrival
   time and direction, in blocks.
-* channel ``/samples/<stream>`` (encoding ``perfcap.samples.v1``, channel metadata ``stream_info``):
-  decoded samples in column blocks (seq, host, device and bus times, values).
-* channel ``/clock/<stream>`` (JSON): the clock-sync fit each time it changes.
-* channel ``/events`` (JSON): device state changes, protocol errors, overflows, notes.
+* channel ``/samples/<stream>`` (protobuf ``perfcap.SampleBlock``, channel metadata ``stream_info``):
+  decoded samples in column blocks (seq, host, device and bus times, values), lossless.
+* channels ``/view/<stream>``, ``/tf/<stream>`` and ``/log`` (protobuf, ``capture.session_view``): the
+  same samples and events as messages Foxglove and other viewers show with no perfcap code.
+* channel ``/clock/<stream>`` (JSON with a JSON Schema): the clock-sync fit each time it changes.
+* channel ``/events`` (JSON with a JSON Schema): device state changes, protocol errors, overflows, notes.
 * metadata ``perfcap.summary`` when the take ended cleanly.
+
+Format 1 sessions (before the viewable channels) stored the blocks in perfcap's own encodings
+(``perfcap.raw.v1``, ``perfcap.samples.v1``, below) and JSON without schemas; they read as before.
 
 Every message's MCAP log time, and its publish time, is its first time (a block's first bus time, a
 chunk's arrival, an event's time) on the wall clock in UTC ns, never before the channel's previous one:
@@ -22,7 +27,7 @@ The definitions (session metadata, devices, channels) are repeated outside the c
 ``perfcap.definitions`` metadata after the flushes that follow a change, so no single chunk or
 record holds the only copy (``session_scan`` reads around damage).
 
-Blocks are columnar (int64 columns delta-coded, float64 values byte-shuffled) so zstd compresses
+Blocks are columnar (int64 columns delta-coded, values of a quantum as integers) so zstd compresses
 them to about the size of the raw bytes. Every block is a separate MCAP message, and the writer
 closes an MCAP chunk and flushes the file at least every ``flush_interval_s``, so a killed recorder
 loses at most that much.
@@ -32,6 +37,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import socket
 import struct
@@ -52,14 +58,24 @@ from capture.sample import (
     SampleBatch,
     StreamInfo,
 )
+from capture.session_blocks import (
+    PROTOBUF,
+    RAW_BLOCK,
+    SAMPLE_BLOCK,
+    decode_raw_run,
+    decode_samples,
+    encode_raw,
+    encode_samples,
+)
 from capture.session_file import MCAP_MAGIC, PendingSession, resolve_target
+from capture.session_view import CLOCK_JSONSCHEMA, EVENT_JSONSCHEMA, LOG, LOG_TOPIC, encode_event, stream_views
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
 #: session metadata key: MCAP log time minus host time, ns (sessions before it used the host time itself)
 LOG_TIME_OFFSET_KEY = "log_time_offset_ns"
 RAW_ENCODING = "perfcap.raw.v1"
@@ -294,6 +310,8 @@ class SessionWriter:
             MCAP log time is its time on the wall clock, so a viewer's timeline shows when it happened.
         base_dir: confine ``path`` to this directory, never following a link on the way (``perfcap
             serve``'s sessions directory).
+        views: also write the viewable channels (``/view``, ``/tf``, ``/log``; ``capture.session_view``);
+            without them the session holds the same data, in channels only perfcap's decoders read.
 
     Raises:
         ConfigError: the path is malformed or leaves ``base_dir`` (see ``resolve_target``).
@@ -303,8 +321,9 @@ class SessionWriter:
 
     def __init__(self, path: str, *, overwrite: bool = False, chunk_bytes: int = 4 << 20, fsync: bool = True,
                  meta: dict[str, str] | None = None, wall_time_s: float | None = None,
-                 base_dir: str | None = None, host_now_ns: int | None = None) -> None:
+                 base_dir: str | None = None, host_now_ns: int | None = None, views: bool = True) -> None:
         self.fsync = fsync
+        self.views = views
         target = resolve_target(path, base_dir)
         try:
             pending = PendingSession(target, overwrite)
@@ -353,15 +372,30 @@ class SessionWriter:
         m.update(meta or {})
         self._w.add_metadata("perfcap.session", m)
         self._note_definitions("session", m)
-        self._raw_schema = self._w.register_schema("perfcap.RawBlock", "text", RAW_SCHEMA_DOC.encode())
-        self._smp_schema = self._w.register_schema("perfcap.SampleBlock", "text", SAMPLES_SCHEMA_DOC.encode())
+        self._raw_schema = self._w.register_schema(RAW_BLOCK.name, PROTOBUF, RAW_BLOCK.data)
+        self._smp_schema = self._w.register_schema(SAMPLE_BLOCK.name, PROTOBUF, SAMPLE_BLOCK.data)
+        self._clock_schema = self._w.register_schema("perfcap.ClockState", "jsonschema",
+                                                     json.dumps(CLOCK_JSONSCHEMA).encode())
+        self._schemas: dict[tuple[str, bytes], int] = {}
         self._channels: dict[str, int] = {}
         self._quantum: dict[str, tuple[float, ...] | None] = {}
-        self._events = self._w.register_channel("/events", "json", 0)
+        #: per stream: (channel id, encode) of each viewable channel
+        self._views: dict[str, list[tuple[int, Any]]] = {}
+        self._orientations = 0
+        self._events = self._w.register_channel("/events", "json", self._w.register_schema(
+            "perfcap.DeviceEvent", "jsonschema", json.dumps(EVENT_JSONSCHEMA).encode()))
+        if self.views:
+            self._log = self._channel(LOG_TOPIC, PROTOBUF, self._schema(LOG.name, LOG.data))
         self._seqs: dict[int, int] = {}
         self._last_log: dict[int, int] = {}
         self.bytes_raw = 0
         self.closed = False
+
+    def _schema(self, name: str, data: bytes) -> int:
+        sid = self._schemas.get((name, data))
+        if sid is None:
+            sid = self._schemas[(name, data)] = self._w.register_schema(name, PROTOBUF, data)
+        return sid
 
     def _channel(self, topic: str, encoding: str, schema: int, metadata: dict[str, str] | None = None) -> int:
         cid = self._channels.get(topic)
@@ -380,7 +414,7 @@ class SessionWriter:
                                            "identity": rec.identity, "streams": rec.streams}, rec.name)
         for key, blob in rec.descriptors.items():
             self._w.add_attachment(0, 0, f"{rec.name}/{key}", "application/octet-stream", blob)
-        self._channel(f"/raw/{rec.name}", RAW_ENCODING, self._raw_schema, {"device": rec.name, "kind": rec.kind})
+        self._channel(f"/raw/{rec.name}", PROTOBUF, self._raw_schema, {"device": rec.name, "kind": rec.kind})
         for s in streams:
             self.add_stream(s)
 
@@ -390,7 +424,13 @@ class SessionWriter:
 
     def add_stream(self, info: StreamInfo) -> None:
         self._quantum[info.name] = info.quantum
-        self._channel(f"/samples/{info.name}", SAMPLES_ENCODING, self._smp_schema, {"stream_info": info.to_json()})
+        self._channel(f"/samples/{info.name}", PROTOBUF, self._smp_schema, {"stream_info": info.to_json()})
+        if info.name in self._views or not self.views:
+            return
+        views = stream_views(info, self._orientations)
+        self._orientations += any(v.topic.startswith("/tf/") for v in views)
+        self._views[info.name] = [(self._channel(v.topic, PROTOBUF, self._schema(v.schema.name, v.schema.data),
+                                                 v.metadata), v.encode) for v in views]
 
     def has_stream(self, name: str) -> bool:
         return f"/samples/{name}" in self._channels
@@ -409,20 +449,26 @@ class SessionWriter:
     def write_raw(self, device: str, chunks: list[Chunk], now_ns: int) -> None:
         cid = self._channels.get(f"/raw/{device}")
         if cid is None:
-            cid = self._channel(f"/raw/{device}", RAW_ENCODING, self._raw_schema, {"device": device, "kind": ""})
+            cid = self._channel(f"/raw/{device}", PROTOBUF, self._raw_schema, {"device": device, "kind": ""})
         self.bytes_raw += sum(len(c.data) for c in chunks)
-        self._add(cid, chunks[0].t_ns, encode_raw_block(chunks), now_ns)
+        self._add(cid, chunks[0].t_ns, encode_raw(chunks), now_ns)
 
     def write_samples(self, batch: SampleBatch, now_ns: int) -> None:
         cid = self._channels[f"/samples/{batch.stream}"]
-        self._add(cid, int(batch.t_bus_ns[0]), encode_sample_block(batch, self._quantum.get(batch.stream)), now_ns)
+        self._add(cid, int(batch.t_bus_ns[0]), encode_samples(batch, self._quantum.get(batch.stream)), now_ns)
+        for vid, encode in self._views.get(batch.stream, ()):
+            for t, data in encode(batch, self.log_time_offset_ns):
+                self._add(vid, t, data, now_ns)
 
     def write_clock(self, state: ClockState, now_ns: int) -> None:
-        cid = self._channel(f"/clock/{state.stream}", "json", 0)
-        self._add(cid, state.t_host_ns, json.dumps(state.to_dict()).encode(), now_ns)
+        cid = self._channel(f"/clock/{state.stream}", "json", self._clock_schema)
+        d = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in state.to_dict().items()}
+        self._add(cid, state.t_host_ns, json.dumps(d).encode(), now_ns)
 
     def write_event(self, ev: DeviceEvent, now_ns: int) -> None:
         self._add(self._events, ev.t_host_ns, json.dumps(ev.to_dict()).encode(), now_ns)
+        if self.views:
+            self._add(self._log, ev.t_host_ns, encode_event(ev, self.log_time_offset_ns), now_ns)
 
     # -- redundant definitions: no single chunk or record holds the only copy -----------------------
     #: session metadata, devices and channels, as the CRC-checked ``perfcap.definitions`` copy holds them
@@ -544,6 +590,8 @@ class SessionReader:
         #: (first byte, end byte) of each stretch of the file skipped as damaged
         self.damaged_regions: list[tuple[int, int]] = []
         self._msgs: dict[str, list[bytes]] = {}
+        #: the message encoding of each topic (blocks of format 1 and 2 differ)
+        self._enc: dict[str, str] = {}
         self._read(scan, progress)
         self._scan = scan
 
@@ -677,6 +725,7 @@ class SessionReader:
                 self._damage("block of a channel whose definition is lost", f"channel {cid}", len(datas))
                 continue
             self._msgs.setdefault(ch[0], []).extend(datas)
+            self._enc.setdefault(ch[0], ch[1])
         for _cid, (topic, _enc, meta) in sorted(channels.items()):
             if topic.startswith("/samples/"):
                 try:
@@ -720,8 +769,8 @@ class SessionReader:
                 self._damage("device record", "lost or differing from its CRC-checked copy (the copy is used)")
                 scan.devices[rec.name] = rec
         if "format_version" not in scan.meta:
-            perfcap = profile == "perfcap" or any(enc in (RAW_ENCODING, SAMPLES_ENCODING)
-                                                 for _t, enc, _m in channels.values())
+            perfcap = profile == "perfcap" or any(enc in (RAW_ENCODING, SAMPLES_ENCODING) or "stream_info" in m
+                                                 for _t, enc, m in channels.values())
             if not perfcap:
                 raise SessionError(f"{self.path} is an MCAP file but not a perfcap session", path=self.path)
             self._damage("session metadata", "lost (no copy survived)")
@@ -748,21 +797,29 @@ class SessionReader:
                 continue
             yield out
 
+    def _raw_runs(self, device: str) -> Iterator[ChunkRun]:
+        topic = f"/raw/{device}"
+        return self._decoded(topic, decode_raw_block_run if self._enc.get(topic) == RAW_ENCODING else decode_raw_run)
+
     def raw_chunks(self, device: str) -> Iterator[Chunk]:
         """Every recorded chunk of a device, in order (damaged blocks skipped and counted)."""
-        for run in self._decoded(f"/raw/{device}", decode_raw_block_run):
+        for run in self._raw_runs(device):
             yield from run
 
     def raw_run(self, device: str) -> ChunkRun:
         """Every recorded chunk of a device as one ``ChunkRun``."""
-        runs = list(self._decoded(f"/raw/{device}", decode_raw_block_run))
+        runs = list(self._raw_runs(device))
         if not runs:
             e = np.empty(0, np.int64)
             return ChunkRun(b"", e, e.copy(), np.empty(0, np.uint8))
         return concat_runs(runs)
 
     def first_and_last_chunk_ns(self, device: str) -> tuple[int, int] | None:
-        spans = list(self._decoded(f"/raw/{device}", raw_block_span))
+        topic = f"/raw/{device}"
+        if self._enc.get(topic) == RAW_ENCODING:
+            spans = list(self._decoded(topic, raw_block_span))
+        else:
+            spans = [(int(r.t_ns[0]), int(r.t_ns[-1])) for r in self._raw_runs(device) if len(r)]
         if not spans:
             return None
         return spans[0][0], spans[-1][1]
@@ -775,8 +832,10 @@ class SessionReader:
             info = self.streams.get(name)
             width = len(info.channels) if info is not None else None
 
-            def decode(data: bytes, name: str = name, width: int | None = width) -> SampleBatch:
-                b = decode_sample_block(name, data)
+            v1 = self._enc.get(f"/samples/{name}") == SAMPLES_ENCODING
+
+            def decode(data: bytes, name: str = name, width: int | None = width, v1: bool = v1) -> SampleBatch:
+                b = decode_sample_block(name, data) if v1 else decode_samples(name, data)
                 if width is not None and b.values.shape[1] != width:
                     raise ValueError(f"sample block of {name} holds {b.values.shape[1]} channels, its stream"
                                      f" declares {width}")

@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 
+import lsl_helpers
 import phone_session_helpers
 import pytest
 from wait_helpers import DEADLINE_S
@@ -15,6 +16,8 @@ from wait_helpers import DEADLINE_S
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared"
 TRACES = SHARED / "traces"
 XIO_CSV = TRACES / "a_imu_csv" / "fusion_sensor_data.csv"
+
+lsl_helpers.configure()  # LSL discovery stays on this machine, one session per run (before pylsl is loaded)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING
 
 from capture.app.orchestrator import Capture
 from capture.errors import SessionError
-from capture.session import SessionReader, SessionWriter
+from capture.session import SAMPLES_ENCODING, SessionReader, SessionWriter
+from capture.session_blocks import decode_samples
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -71,7 +72,7 @@ def chunk_map(data: bytes) -> list[ChunkInfo]:
     reader = make_reader(io.BytesIO(data))
     summary = reader.get_summary()
     assert summary is not None
-    samples_ids = {c.id for c in summary.channels.values() if c.topic.startswith("/samples/")}
+    samples_ids = {c.id: c.message_encoding for c in summary.channels.values() if c.topic.startswith("/samples/")}
     raw_ids = {c.id for c in summary.channels.values() if c.topic.startswith("/raw/")}
     out = []
     from mcap.data_stream import ReadDataStream
@@ -80,7 +81,8 @@ def chunk_map(data: bytes) -> list[ChunkInfo]:
         body = data[ci.chunk_start_offset + 9:ci.chunk_start_offset + ci.chunk_length]
         ch = Chunk.read(ReadDataStream(io.BytesIO(body)))
         records = [r for r in breakup_chunk(ch) if isinstance(r, Message)]
-        n = sum(struct.unpack_from("<I", r.data)[0] for r in records if r.channel_id in samples_ids)
+        n = sum(struct.unpack_from("<I", r.data)[0] if samples_ids[r.channel_id] == SAMPLES_ENCODING
+                else len(decode_samples("x", r.data)) for r in records if r.channel_id in samples_ids)
         out.append(ChunkInfo(ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length
                              + ci.message_index_length, n, sum(r.channel_id in raw_ids for r in records)))
     return out

@@ -89,6 +89,8 @@ class RecorderSettings:
     max_loss_s: float = setting(1.0, "at most this much data lost if the recorder is killed", min=0.01, max=3600)
     fsync: bool = setting(True, "also survive power loss, not only a killed process")
     overwrite: bool = setting(False, "replace an existing session file")
+    views: bool = setting(True, "also record every sample and event as messages viewers show with no perfcap code"
+                                " (Foxglove: /view, /tf, /log); about twice the raw bytes more on disk")
 
 
 @dataclass

@@ -134,6 +134,8 @@ def start_service(devices: list[str], path: str, overwrite: bool) -> tuple[Servi
                       names={f"page/{PHONE_ID}": "phone"})
     service = Service(cfg, devices)
     try:
+        # orientation of every IMU, so the session's 3D view (``/tf/...``) shows each sensor turning
+        service.capture.enable_orientation("fusion")
         service.capture.start_recording(path, overwrite=overwrite, meta={"command": "perfcap demo"})
     except BaseException:
         service.capture.stop()

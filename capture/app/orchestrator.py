@@ -195,7 +195,7 @@ class Capture:
                  overwrite: bool = False, max_loss_s: float = 1.0, fsync: bool = True,
                  recorder_max_bytes: int = 1 << 30, live_queue: int = 8192,
                  reconnect: ReconnectPolicy = DEFAULT_RECONNECT, meta: dict[str, str] | None = None,
-                 clock: Clock = MONOTONIC, allow_empty: bool = False) -> None:
+                 clock: Clock = MONOTONIC, allow_empty: bool = False, views: bool = True) -> None:
         if not devices and not allow_empty:
             raise ConfigError("no devices given; add at least one with -d DEVICE (e.g. -d synth://imu)")
         self.clock = clock
@@ -213,6 +213,8 @@ class Capture:
         self.recorder: SessionRecorder | None = None
         self._max_loss_s = max_loss_s
         self._fsync = fsync
+        #: sessions also hold the viewable channels (``SessionWriter``'s ``views``)
+        self.views = views
         self.reconnect = reconnect
         self._lock = threading.RLock()  # devices and the recorder change together (serve adds phones live)
         #: set when the recording fails (a write error): ``run`` ends the take
@@ -223,7 +225,7 @@ class Capture:
         writer = None
         if output is not None:  # before any thread starts: a bad path must leave nothing running
             writer = SessionWriter(output, overwrite=overwrite, fsync=fsync, meta=meta,
-                                   wall_time_s=clock.wall_time_s(), host_now_ns=clock.now_ns())
+                                   wall_time_s=clock.wall_time_s(), host_now_ns=clock.now_ns(), views=views)
         self.bus = SampleBus(clock, live_queue=live_queue, recorder_max_bytes=recorder_max_bytes)
         self.processors: list[Processor] = []
         self.orientation: OrientationProcessor | None = None
@@ -338,7 +340,7 @@ class Capture:
                 raise ConfigError(f"already recording to {self.output}; stop that recording first")
             writer = SessionWriter(output, overwrite=overwrite, fsync=self._fsync, meta=meta,
                                    wall_time_s=self.clock.wall_time_s(), host_now_ns=self.clock.now_ns(),
-                                   base_dir=base_dir)
+                                   base_dir=base_dir, views=self.views)
             try:
                 self._attach_recorder(writer)
             except BaseException:

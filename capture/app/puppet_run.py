@@ -37,6 +37,7 @@ from capture.bus import Processor
 from capture.errors import ConfigError
 from capture.quat import quat_conj, quat_mul, quat_rotate, quat_slerp
 from capture.sample import Sample, SampleBatch, StreamInfo
+from capture.session_view import SKELETON_KEY
 from retarget.puppet import PhoneInput, PuppetFrame, PuppetRetargeter
 from retarget.skeleton import Clip, Skeleton
 from retarget.timeline import split_heading, yaw_quat
@@ -369,8 +370,9 @@ class PuppetFollower(Processor):
         self.first_error: str | None = None
         sk = run.retargeter.skeleton
         channels = ("root.x", "root.y", "root.z", *(f"{j}.{c}" for j in sk.names for c in "wxyz"))
+        skeleton = json.dumps({"parents": np.asarray(sk.parents).tolist(), "offsets": np.asarray(sk.offsets).tolist()})
         self.pose = StreamInfo(f"{device}/puppet", "pose", channels, ("m",) * 3 + ("1",) * (4 * sk.n_joints),
-                               run.rate, attitude.device)
+                               run.rate, attitude.device, extra={SKELETON_KEY: skeleton})
         self._publish: Callable[[Any], None] | None = None
         self.published = 0
 
