@@ -85,7 +85,8 @@ def build(package: str, file_name: str, messages: Sequence[tuple[str, Sequence[F
         m = fdp.message_type.add(name=mname)
         _doc(fdp, [4, mi], mdoc)
         for fi, f in enumerate(fields):
-            fp = m.field.add(name=f.name, number=fi + 1, type=TYPES[f.type],
+            # json_name spelled out as the name itself: the default (camel case) makes ``a_b`` and ``aB`` clash
+            fp = m.field.add(name=f.name, number=fi + 1, type=TYPES[f.type], json_name=f.name,
                              label=F.LABEL_REPEATED if f.repeated else F.LABEL_OPTIONAL)
             if f.type == "message":
                 fp.type_name = "." + f.message
