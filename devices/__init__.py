@@ -44,6 +44,7 @@ DEVICE_TYPES: dict[str, tuple[str, str]] = {
     "osc": ("devices.phone_apps.osc", "OscPhone"),
     "hyperimu": ("devices.phone_apps.hyperimu", "HyperImuPhone"),
     "sensorserver": ("devices.phone_apps.sensorserver", "SensorServerPhone"),
+    "lsl": ("devices.lsl", "LslInlet"),
 }
 
 SPEC_FORM = "[NAME=][KIND@]SCHEME://ADDRESS[?key=value&...]"

@@ -32,6 +32,7 @@ TRANSPORTS: dict[str, tuple[str, str]] = {
     "evdev": ("devices.transports.evdev", "EvdevTransport"),
     "net": ("devices.transports.network", "NetTransport"),
     "sensorserver": ("devices.transports.sensorserver", "SensorServerTransport"),
+    "lsl": ("devices.transports.lsl", "LslTransport"),
 }
 
 _ENTRY_POINT_GROUP = "perfcap.transports"

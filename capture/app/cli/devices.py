@@ -1,5 +1,6 @@
-"""``perfcap devices``: the serial ports, HID devices and Linux input devices present (with the device string that opens
-each), the device kinds and the transports, with their options."""
+"""``perfcap devices``: the serial ports, HID devices and Linux input devices present, and the LSL streams that answer
+within ``--lsl-timeout`` (each with the device string that opens it), the device kinds and the transports, with their
+options."""
 
 from __future__ import annotations
 
@@ -16,8 +17,11 @@ if TYPE_CHECKING:
 
 
 def add_parser(sub: Subcommands) -> None:
-    dv = sub.add_parser("devices", help="list serial ports, HID and input devices present, device kinds and transports")
+    dv = sub.add_parser("devices", help="list serial ports, HID and input devices present, LSL streams, device kinds"
+                        " and transports")
     dv.add_argument("--json", action="store_true", help="one JSON object")
+    dv.add_argument("--lsl-timeout", type=float, default=1.0, metavar="S",
+                    help="seconds to wait for LSL streams to answer (default 1; 0: do not look for them)")
     dv.set_defaults(func=run)
 
 
@@ -27,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from devices.transports import transport_class
     from devices.transports.evdev import list_input_devices
     from devices.transports.hid import list_hid_devices
+    from devices.transports.lsl import list_lsl_streams
     from devices.transports.serialport import list_serial_ports
 
     ports = list_serial_ports()
@@ -40,12 +45,19 @@ def run(args: argparse.Namespace) -> int:
         input_error = ""
     except CaptureError as exc:
         inputs, input_error = [], str(exc)
+    lsl_error = "not looked for (--lsl-timeout 0)" if args.lsl_timeout <= 0 else ""
+    try:
+        streams = list_lsl_streams(args.lsl_timeout) if args.lsl_timeout > 0 else []
+    except CaptureError as exc:
+        streams, lsl_error = [], str(exc)
     if args.json:
         doc = {
             "serial_ports": [p.as_dict() for p in ports],
             "hid_devices": [h.as_dict() for h in hids],
             "input_devices": [i.as_dict() for i in inputs],
             **({"input_devices_error": input_error} if input_error else {}),
+            "lsl_streams": [st.as_dict() for st in streams],
+            **({"lsl_streams_error": lsl_error} if lsl_error else {}),
             "kinds": {k: {"description": device_class(k).description,
                           "options": {n: {"default": o.default, "help": o.help, "form": o.form()}
                                       for n, o in device_class(k).options.items()}} for k in known_kinds()},
@@ -90,6 +102,16 @@ def run(args: argparse.Namespace) -> int:
     for i in inputs:
         out(f"  {i.path}  [{i.vid:04x}:{i.pid:04x}] {i.name or 'unnamed'}: {i.likely}; {i.summary()}")
         out(f"      open as {i.url}")
+    out(f"LSL streams (answering within {args.lsl_timeout:g} s):")
+    if lsl_error:
+        out(f"  {lsl_error}")
+    elif not streams:
+        out("  none found (streams that other programs publish on Lab Streaming Layer show up here)")
+    for st in streams:
+        rate = f"{st.rate_hz:g} Hz" if st.rate_hz else "irregular rate"
+        out(f"  {st.name or '(unnamed)'}  type {st.type or '-'}, {st.channels} x {st.format} at {rate};"
+            f" source_id {st.source_id or '-'} on {st.host or '?'}")
+        out(f"      open as {st.url}")
     out("device kinds (KIND@ in a device string):")
     for k in known_kinds():
         c = device_class(k)
