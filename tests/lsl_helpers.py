@@ -1,12 +1,14 @@
 """LSL on loopback for tests: liblsl's own configuration file, pointed at by ``LSLAPICFG``.
 
-By default liblsl resolves streams by multicast on every interface, so a test could see (or be seen
-by) LSL streams of other programs on the network and could fail where multicast is filtered. The file
-written here keeps discovery on this machine (``ResolveScope = machine``, the loopback address as the
-one known peer), disables IPv6 and gives the run its own ``SessionID`` (so parallel test runs on one
-machine never see each other's streams) and logs warnings only. liblsl reads the file once per process,
-when it is first used: ``configure()`` runs at the import of the root conftest, before any test loads pylsl, and child
-processes (the two-process tests) inherit the variable.
+By default liblsl resolves streams by multicast up to site scope, so a test could see (or be seen by)
+LSL streams of other programs on the network. The file written here keeps discovery to the link
+(``ResolveScope = link``: multicast that no router forwards, looped back to this machine's own
+sockets; ``machine`` scope would need multicast on the loopback interface, which containers often
+lack, and the loopback address as a known peer alone finds only one outlet per machine, because
+every outlet's responder shares one port), disables IPv6 and gives the run its own ``SessionID`` (so
+parallel test runs, here or on the link, never see each other's streams) and logs errors only. liblsl
+reads the file once per process, when it is first used: ``configure()`` runs at the import of the root
+conftest, before any test loads pylsl, and child processes (the two-process tests) inherit the variable.
 """
 
 from __future__ import annotations
@@ -20,14 +22,14 @@ CONFIG = """\
 IPv6 = disable
 
 [multicast]
-ResolveScope = machine
+ResolveScope = link
 KnownPeers = {{127.0.0.1}}
 
 [lab]
 SessionID = {session}
 
 [log]
-level = -1
+level = -2
 """
 
 
@@ -59,9 +61,3 @@ def resolve_by_name(name: str, timeout: float = 60.0) -> object:
         if time.monotonic() > end:
             raise AssertionError(f"LSL stream {name!r} not resolved within {timeout} s")
 
-
-def gone(name: str, wait_s: float = 0.5) -> bool:
-    """True when no stream called ``name`` answers within ``wait_s``."""
-    import pylsl
-
-    return not pylsl.resolve_bypred(f"name='{name}'", 0, wait_s)

@@ -34,6 +34,7 @@ def add_parser(sub: Subcommands) -> None:
     d.add_argument("-o", "--output", metavar="SESSION.mcap", help="where to keep the demo session")
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true")
+    d.add_argument("--lsl", action="store_true", help="also publish every stream as a Lab Streaming Layer outlet")
     d.set_defaults(func=run)
 
 
@@ -45,6 +46,10 @@ def run(args: argparse.Namespace) -> int:
 
     check_duration(args.duration)
     output_file(args.output, "-o")
+    if args.lsl:
+        from capture.app.lsl_out import load_pylsl
+
+        load_pylsl()  # a machine without liblsl is told so before anything starts
     path = args.output or os.path.join(tempfile.mkdtemp(prefix="perfcap-demo-"), "demo.mcap")
     devices = list(demo.DEMO_DEVICES)
     stop = stop_on_signals()
@@ -66,6 +71,12 @@ def run(args: argparse.Namespace) -> int:
         cap = service.capture
         follow = demo.follow_wrist(cap)
         try:
+            if args.lsl:
+                from capture.app.lsl_out import publish_capture
+
+                lsl_pub, _ = publish_capture(cap)
+                out(f"  lsl    every stream as a Lab Streaming Layer outlet ({len(lsl_pub.streams)} now, the"
+                    " phone's when it pairs)")
             phone = demo.start_phone(service, args.duration, stop)
             t0 = MONOTONIC.now_ns()
             next_tick = 1.0

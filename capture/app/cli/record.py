@@ -23,9 +23,11 @@ if TYPE_CHECKING:
     import argparse
 
     from capture.app.cli.common import Subcommands
+    from capture.app.foxglove_live import FoxgloveServer
 
 
 def add_parser(sub: Subcommands) -> None:
+    from capture.app.serve.config import FOXGLOVE_PORT
     from devices import SPEC_EXAMPLE, SPEC_FORM
 
     r = sub.add_parser("record", help="record devices to a session file")
@@ -42,6 +44,13 @@ def add_parser(sub: Subcommands) -> None:
     orientation_args(r, "record orientation, gravity and linear acceleration of every IMU (with its stored"
                         " calibration)")
     r.add_argument("--calibration-dir", metavar="DIR", help="where calibrations are stored (perfcap calibrate)")
+    r.add_argument("--lsl", action="store_true", help="also publish every stream as a Lab Streaming Layer outlet"
+                   " (LabRecorder records them aligned with other LSL sources)")
+    r.add_argument("--foxglove", nargs="?", const=str(FOXGLOVE_PORT), metavar="PORT",
+                   help="also serve the live data to the Foxglove app (its WebSocket connection) on this port"
+                        f" (bare: {FOXGLOVE_PORT}; 0: any free port)")
+    r.add_argument("--foxglove-host", metavar="HOST", help="address the --foxglove server listens on (default"
+                   " 127.0.0.1, this machine only; it has no authentication)")
     r.set_defaults(func=run)
 
 
@@ -57,9 +66,14 @@ def run(args: argparse.Namespace) -> int:
     specs = [parse_device_spec(d) for d in args.device] if args.device else list(s.devices)
     if not specs:
         raise ConfigError("no devices: give -d DEVICE (e.g. -d synth://imu?rate=200) or [[devices]] in --config")
+    if args.lsl:
+        from capture.app.lsl_out import load_pylsl
+
+        load_pylsl()  # a machine without liblsl is told so before any file is made
+    fox = _foxglove_server(args)  # before any file is made: a port in use leaves nothing behind
     stop = stop_on_signals()
     cap = Capture(specs, output=args.output, overwrite=s.recorder.overwrite, max_loss_s=s.recorder.max_loss_s,
-                  fsync=s.recorder.fsync, recorder_max_bytes=s.bus.recorder_max_mb << 20,
+                  fsync=s.recorder.fsync, views=s.recorder.views, recorder_max_bytes=s.bus.recorder_max_mb << 20,
                   live_queue=s.bus.live_queue, reconnect=s.reconnect_policy(),
                   meta={"command": " ".join(sys.argv), "config": ",".join(s.sources)})
     if s.orientation.enabled:
@@ -71,7 +85,40 @@ def run(args: argparse.Namespace) -> int:
             raise
         if proc is None:
             err("perfcap: note: --orientation: no IMU stream among the devices")
+    if args.lsl:  # after the processors, so their streams have outlets before data flows too
+        from capture.app.lsl_out import publish_capture
+
+        try:
+            pub, _ = publish_capture(cap)
+        except BaseException:
+            cap.stop()
+            raise
+        err(f"publishing {len(pub.streams)} streams as LSL outlets: {', '.join(pub.streams)}")
+    if fox is not None:  # after the processors, so their streams take their places in the 3D view
+        from capture.app import foxglove_live
+
+        try:
+            foxglove_live.publish_capture(cap, fox)
+        except BaseException:
+            cap.stop()
+            raise
+        err(f"Foxglove: open {fox.url} {foxglove_live.HOW_TO_OPEN}")
     names = ", ".join(f"{d.name} ({d.kind} @ {d.transport.url})" for d in cap.devices)
     err(f"recording {names} to {args.output}" + (f" for {args.duration:g} s" if args.duration else " until Ctrl-C"))
     report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else live_line)
     return print_capture(report, args.json)
+
+
+def _foxglove_server(args: argparse.Namespace) -> FoxgloveServer | None:
+    """The ``--foxglove`` server, listening (None without the flag).
+
+    Raises:
+        ConfigError: a bad port, ``--foxglove-host`` without ``--foxglove``, or the port cannot be bound.
+    """
+    if args.foxglove is None:
+        if args.foxglove_host:
+            raise ConfigError("--foxglove-host needs --foxglove[=PORT]")
+        return None
+    from capture.app.foxglove_live import LOOPBACK, FoxgloveServer, parse_port
+
+    return FoxgloveServer(args.foxglove_host or LOOPBACK, parse_port(args.foxglove))

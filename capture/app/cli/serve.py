@@ -23,7 +23,7 @@ from capture.app.cli.common import (
     settings,
 )
 from capture.app.schema import add_flags, flag_values
-from capture.app.serve.config import ServeConfig
+from capture.app.serve.config import FOXGLOVE_PORT, ServeConfig
 from capture.clock import MONOTONIC
 from capture.errors import ConfigError
 from devices.options import shown
@@ -45,6 +45,7 @@ def add_parser(sub: Subcommands) -> None:
     sv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     sv.add_argument("--rotate-token", action="store_true", help="make a new pairing token before starting")
     add_flags(sv, ServeConfig)  # one flag per [serve] setting (capture.app.serve.config)
+    _bare_flag(sv, "--foxglove", str(FOXGLOVE_PORT))  # --foxglove alone: the Foxglove app's default port
     sv.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="stop after this long")
     sv.add_argument("--status-every", type=SECONDS_OR_ZERO, default=5.0, help="seconds between status lines (0: none)")
     sv.add_argument("--config", metavar="FILE")
@@ -52,6 +53,15 @@ def add_parser(sub: Subcommands) -> None:
     sv.add_argument("-q", "--quiet", action="store_true")
     sv.add_argument("--json", action="store_true", help="final report as JSON")
     sv.set_defaults(func=run)
+
+
+def _bare_flag(parser: argparse.ArgumentParser, flag: str, const: str) -> None:
+    """Let a setting's flag also be given without a value (``--foxglove`` means ``--foxglove=8765``)."""
+    for action in parser._actions:
+        if flag in action.option_strings:
+            action.nargs, action.const = "?", const
+            return
+    raise ValueError(f"no flag {flag}")
 
 
 def _print_qr(url: str) -> None:
@@ -92,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
     check_duration(args.duration)
     s = settings(args, serve=flag_values(args, ServeConfig))
     cfg = s.serve
-    for flag, host in (("--host", cfg.host), ("--control-host", cfg.control_host), ("--public-host", cfg.public_host)):
+    for flag, host in (("--host", cfg.host), ("--control-host", cfg.control_host), ("--public-host", cfg.public_host),
+                       ("--foxglove-host", cfg.foxglove_host)):
         _check_host(flag, host)
     if cfg.sessions_dir and not os.path.isdir(cfg.sessions_dir):  # "": the default, made on first use
         raise ConfigError(f"sessions_dir {cfg.sessions_dir} (--sessions-dir, [serve] sessions_dir or"
@@ -106,10 +117,34 @@ def run(args: argparse.Namespace) -> int:
         from capture.app.serve.service import default_state_dir
 
         TokenStore(Path(cfg.state_dir) if cfg.state_dir else default_state_dir()).rotate()
+    if cfg.lsl:
+        from capture.app.lsl_out import load_pylsl
+
+        load_pylsl()  # a machine without liblsl is told so before anything starts
     service = Service(cfg, specs, reconnect=s.reconnect_policy(),
                       capture_options={"max_loss_s": s.recorder.max_loss_s, "fsync": s.recorder.fsync,
                                        "recorder_max_bytes": s.bus.recorder_max_mb << 20,
                                        "live_queue": s.bus.live_queue})
+
+    if cfg.lsl:  # before the capture starts: the outlets of the devices given exist before data flows
+        from capture.app.lsl_out import publish_capture
+
+        try:
+            publish_capture(service.capture)
+        except BaseException:
+            service.capture.stop()
+            raise
+
+    fox = None
+    if cfg.foxglove >= 0:  # before any file is made: a port in use leaves nothing behind
+        from capture.app import foxglove_live
+
+        try:
+            fox = foxglove_live.FoxgloveServer(cfg.foxglove_host, cfg.foxglove)
+            foxglove_live.publish_capture(service.capture, fox)  # it stops with the capture
+        except BaseException:
+            service.capture.stop()
+            raise
 
     if args.record:  # before anything starts, so the take has the devices' first bytes
         try:
@@ -137,6 +172,8 @@ def run(args: argparse.Namespace) -> int:
         if ep.control_url:
             out(f"  control API     {ep.control_url}  (Authorization: Bearer <token>)")
         out(f"  mDNS            {ep.advertised or 'off: ' + str(ep.mdns_error or 'disabled')}")
+        if fox is not None:
+            out(f"  Foxglove        open {fox.url} {foxglove_live.HOW_TO_OPEN}")
         _print_qr(ep.pair_url)
         if svc.capture.output:
             out(f"  recording to    {svc.capture.output}")

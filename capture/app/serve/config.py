@@ -24,6 +24,8 @@ PHONE_PROTOCOLS = ("page", "sensorlogger", "osc", "hyperimu")
 #: a device name (``devices._NAME_RE``)
 _DEVICE_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 _PUBLIC_HOST_RE = re.compile(r"^[A-Za-z0-9.\-:]{1,253}$")
+#: the port of a bare ``--foxglove`` (``perfcap serve`` and ``record``): the Foxglove app's default
+FOXGLOVE_PORT = 8765
 
 
 @dataclass
@@ -105,6 +107,11 @@ class ServeConfig:
                                     max=86_400.0)
     phone_timeout_s: float = setting(60.0, "seconds a phone may be gone or silent before its slot is given to"
                                      " another phone", min=1.0, max=86_400.0)
+    foxglove: int = setting(-1, f"the Foxglove app's live WebSocket server on this port (a bare --foxglove:"
+                            f" {FOXGLOVE_PORT}; 0: any free port; -1: off)", min=-1, max=65535, metavar="PORT")
+    foxglove_host: str = setting("127.0.0.1", "address the Foxglove server listens on (default loopback only;"
+                                 " it has no authentication)")
+    lsl: bool = setting(False, "publish every stream (phones included) as a Lab Streaming Layer outlet")
     # -- not settings: for a service built in code ---------------------------------------------------
     token: str | None = None        # a fixed token (tests); None = the stored one
     limits: Limits | None = None    # exact limits; None = from the max_* settings
