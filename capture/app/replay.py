@@ -42,7 +42,10 @@ class ReplayReport:
 
 
 def session_span(reader: SessionReader) -> tuple[int, int]:
-    """The earliest and latest recorded chunk times over all devices.
+    """The earliest and latest recorded chunk times over all devices. Where damage took the first raw
+    chunks but sample blocks from them survive, the start is the earliest arrival those samples recorded
+    (each sample's host time is the arrival of a chunk), so the replay's timeline does not move with
+    which chunks survived.
 
     Raises:
         SessionError: the session holds no raw data.
@@ -50,7 +53,11 @@ def session_span(reader: SessionReader) -> tuple[int, int]:
     spans = [s for s in (reader.first_and_last_chunk_ns(d) for d in reader.devices) if s is not None]
     if not spans:
         raise SessionError(f"{reader.path} holds no raw data to replay", path=reader.path)
-    return min(s[0] for s in spans), max(s[1] for s in spans)
+    t0 = min(s[0] for s in spans)
+    if reader.damaged:
+        heads = [int(b.t_host_ns.min()) for b in reader.sample_blocks() if len(b)]
+        t0 = min([t0, *heads])
+    return t0, max(s[1] for s in spans)
 
 
 def run_merged(cap: Capture, duration_s: float | None = None, window_s: float = 5.0,
