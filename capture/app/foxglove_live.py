@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import foxglove
 
+from capture.app.serve.config import FOXGLOVE_PORT
 from capture.bus import Overflow, Subscriber, Subscription
 from capture.errors import ConfigError
 from capture.sample import DeviceEvent, DeviceIdentity, Sample, SampleBatch, StreamInfo
@@ -51,8 +52,6 @@ log = logging.getLogger(__name__)
 
 #: where the server listens unless told otherwise
 LOOPBACK = "127.0.0.1"
-#: the port of a bare ``--foxglove`` (the Foxglove app's default for a WebSocket connection)
-DEFAULT_PORT = 8765
 #: the live subscriber's queue: items waiting beyond it are discarded, oldest first, and counted
 LIVE_QUEUE = 8192
 #: what the Foxglove app shows as the server's name
@@ -113,7 +112,7 @@ class FoxgloveServer:
         ConfigError: the port is in use, or the address cannot be bound.
     """
 
-    def __init__(self, host: str = LOOPBACK, port: int = DEFAULT_PORT) -> None:
+    def __init__(self, host: str = LOOPBACK, port: int = FOXGLOVE_PORT) -> None:
         if not 0 <= port <= 65535:
             raise ConfigError(f"Foxglove server: port {port} is not 0 (any free port) to 65535")
         self.host = host
@@ -261,20 +260,6 @@ def _no_encode(batch: SampleBatch, offset_ns: int) -> Encoded:  # /log is writte
     return []
 
 
-def capture_streams(cap: Capture) -> list[StreamInfo]:
-    """A capture's streams in the order it declares them to its recorder: devices', then processors'."""
-    return [s for d in list(cap.devices) for s in d.streams] + [s for p in list(cap.processors)
-                                                                for s in p.output_streams()]
-
-
-def capture_stream(cap: Capture, name: str) -> StreamInfo | None:
-    """The ``StreamInfo`` of a capture's stream by name, as the recorder learns it (None: unknown)."""
-    for s in capture_streams(cap):
-        if s.name == name:
-            return s
-    return None
-
-
 def publish_capture(cap: Capture, server: FoxgloveServer, *,
                     max_items: int = LIVE_QUEUE) -> tuple[FoxglovePublisher, Subscription]:
     """Publish a capture's bus on ``server``: subscribed now, as a live (``KEEP_NEWEST``) subscriber
@@ -282,7 +267,7 @@ def publish_capture(cap: Capture, server: FoxgloveServer, *,
     (``enable_orientation``), so their streams take their places in the 3D view as in the session.
     If subscribing fails, the server is stopped."""
     try:
-        pub = FoxglovePublisher(server, cap.clock, capture_streams(cap), lookup=lambda name: capture_stream(cap, name))
+        pub = FoxglovePublisher(server, cap.clock, cap.streams(), lookup=cap.stream_info)
         sub = cap.bus.subscribe(pub, policy=Overflow.KEEP_NEWEST, name="foxglove", max_items=max_items)
     except BaseException:
         server.stop()
@@ -290,7 +275,7 @@ def publish_capture(cap: Capture, server: FoxgloveServer, *,
     return pub, sub
 
 
-def start(cap: Capture, host: str = LOOPBACK, port: int = DEFAULT_PORT) -> FoxglovePublisher:
+def start(cap: Capture, host: str = LOOPBACK, port: int = FOXGLOVE_PORT) -> FoxglovePublisher:
     """A Foxglove server on ``host:port`` publishing ``cap`` (see :func:`publish_capture`).
 
     Raises:

@@ -50,7 +50,7 @@ import numpy as np
 
 from capture.bus import SAMPLES, Overflow, Subscriber, Subscription
 from capture.clock import MONOTONIC, Clock
-from capture.errors import ConfigError
+from capture.errors import ConfigError, DeviceUnavailableError
 from capture.sample import DeviceIdentity, Sample, SampleBatch, StreamInfo
 
 if TYPE_CHECKING:
@@ -241,20 +241,17 @@ class ClockOffset:
 
 
 def load_pylsl() -> ModuleType:
-    """pylsl with its liblsl, or a one-line ``ConfigError`` saying why it cannot be used.
+    """pylsl with its liblsl (as ``lsl://`` loads it), or a one-line ``ConfigError`` saying why it cannot be used.
 
     Raises:
         ConfigError: pylsl is missing or its library cannot load.
     """
+    from devices.transports.lsl import load_pylsl as load
+
     try:
-        import pylsl
-    except ImportError as exc:
-        raise ConfigError(f"--lsl needs pylsl ({exc}); install it with: pip install pylsl") from None
-    except (OSError, RuntimeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError(f"--lsl: liblsl (LSL's library, shipped in pylsl's wheel) cannot be loaded: {first}"
-                          " (set PYLSL_LIB to a liblsl build, or reinstall pylsl)") from None
-    return pylsl
+        return load("--lsl")
+    except DeviceUnavailableError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 class LslPublisher(Subscriber):
@@ -382,19 +379,6 @@ class LslPublisher(Subscriber):
         return sorted(self.specs)
 
 
-def capture_stream(cap: Capture, name: str) -> StreamInfo | None:
-    """The ``StreamInfo`` of a capture's stream by name: a device's or a processor's (None: unknown)."""
-    for d in list(cap.devices):
-        for s in d.streams:
-            if s.name == name:
-                return s
-    for p in list(cap.processors):
-        for s in p.output_streams():
-            if s.name == name:
-                return s
-    return None
-
-
 def publish_capture(cap: Capture, *, host: str | None = None, remeasure_s: float = 10.0,
                     max_bytes: int = MAX_BYTES) -> tuple[LslPublisher, Subscription]:
     """Subscribe an ``LslPublisher`` to a capture: the outlets of every stream known now (devices and
@@ -404,8 +388,8 @@ def publish_capture(cap: Capture, *, host: str | None = None, remeasure_s: float
     Raises:
         ConfigError: pylsl cannot be loaded.
     """
-    infos = [s for d in cap.devices for s in d.streams] + [s for p in cap.processors for s in p.output_streams()]
-    pub = LslPublisher(infos, lookup=lambda name: capture_stream(cap, name), clock=cap.clock, host=host,
+    infos = cap.streams()
+    pub = LslPublisher(infos, lookup=cap.stream_info, clock=cap.clock, host=host,
                        remeasure_s=remeasure_s)
     sub = cap.bus.subscribe(pub, policy=Overflow.NEVER_DROP, name="lsl", max_bytes=max_bytes)
     return pub, sub

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from capture.calibration import ImuCalibration
     from capture.calibration_store import CalibrationStore
     from capture.orientation import OrientationProcessor
+    from capture.sample import StreamInfo
 
 log = logging.getLogger(__name__)
 
@@ -308,6 +309,16 @@ class Capture:
             if d.name == name:
                 return d
         return None
+
+    def streams(self) -> list[StreamInfo]:
+        """Every stream of the capture in the order it declares them to its recorder: the devices', then
+        the processors' outputs (live outputs take their channels from here)."""
+        return [s for d in list(self.devices) for s in d.streams] + [s for p in list(self.processors)
+                                                                     for s in p.output_streams()]
+
+    def stream_info(self, name: str) -> StreamInfo | None:
+        """A stream of the capture by name (None: unknown; a stream published by nobody it knows)."""
+        return next((s for s in self.streams() if s.name == name), None)
 
     @property
     def recording(self) -> bool:

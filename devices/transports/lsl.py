@@ -119,8 +119,8 @@ def load_pylsl(why: str = "lsl://") -> ModuleType:
                                      source="lsl") from None
     except (OSError, RuntimeError) as exc:  # the bundled liblsl cannot be loaded
         raise DeviceUnavailableError(f"{why}: liblsl (shipped in pylsl's wheel) cannot be loaded: "
-                                     f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
-                                     source="lsl") from None
+                                     f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                                     " (set PYLSL_LIB to a liblsl build, or reinstall pylsl)", source="lsl") from None
     return pylsl
 
 
