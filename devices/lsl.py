@@ -6,7 +6,9 @@ stream's description (``desc/channels/channel/label``, made into names and uniqu
 ``cN-1``, with the units given there. The sender's LSL timestamps are the device clock, in ns
 (seconds x 1e9, rounded; no wrap), fitted to the bus clock like any device's; a stream of nominal
 rate 0 (LSL's irregular rate) has no rate. Numeric formats only: a string stream (markers) is
-refused with a clear error.
+refused with a clear error. A stream another perfcap publishes (``--lsl``) says its kind and frame in
+its description (``desc/perfcap``): it keeps them, and its suffix is the sender's (``a/imu`` arrives
+as ``<name>/imu`` of kind ``imu``), so orientation fusion and the 3D view treat it as the sender did.
 
 The streams are declared before the first byte, from the stream's XML description: the ``info``
 option (a session keeps it with the device's options, so ``replay://`` declares the same streams
@@ -89,9 +91,11 @@ class LslInlet(Device[LslCodec]):
                 " read; only numeric streams (float32, double64, int8..int64) are supported", source=self.name)
         self._xml = xml
         self.desc = desc
-        suffix = self.opts["stream"] or _NOT_NAME.sub("_", desc.type.lower()).strip("_") or "data"
-        info = self.stream_info(suffix, "lsl", channel_names(desc.labels), desc.units, desc.rate_hz,
-                                clock=LSL_CLOCK)
+        sender = desc.name.rpartition("/")[2] if desc.kind else ""
+        suffix = (self.opts["stream"] or _NOT_NAME.sub("_", sender).strip("_")
+                  or _NOT_NAME.sub("_", desc.type.lower()).strip("_") or "data")
+        info = self.stream_info(suffix, desc.kind or "lsl", channel_names(desc.labels), desc.units, desc.rate_hz,
+                                frame=desc.frame or None, clock=LSL_CLOCK)
         extra: dict[str, str | bool] = {"lsl_name": desc.name, "lsl_type": desc.type, "lsl_format": desc.format,
                                         "lsl_source_id": desc.source_id, "lsl_host": desc.hostname}
         return [dataclasses.replace(info, extra=extra)]

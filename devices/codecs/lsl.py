@@ -176,6 +176,9 @@ class LslDescription:
     hostname: str
     labels: tuple[str, ...]
     units: tuple[str, ...]
+    #: what a perfcap sender says of the stream (``desc/perfcap``): its kind and frame ("" from others)
+    kind: str = ""
+    frame: str = ""
 
     @property
     def format_code(self) -> int:
@@ -212,8 +215,10 @@ def parse_info_xml(xml: str, where: str = "LSL stream description") -> LslDescri
     chans = root.findall("desc/channels/channel")[:count]
     labels = [text(c, "label") for c in chans] + [""] * (count - len(chans))
     units = [text(c, "unit") for c in chans] + [""] * (count - len(chans))
+    meta = root.find("desc/perfcap")
     return LslDescription(text(root, "name"), text(root, "type"), count, rate or None, fmt,
-                          text(root, "source_id"), text(root, "hostname"), tuple(labels), tuple(units))
+                          text(root, "source_id"), text(root, "hostname"), tuple(labels), tuple(units),
+                          text(meta, "kind"), text(meta, "frame"))
 
 
 __all__ = ["MAX_PAYLOAD", "LslCodec", "LslDescription", "LslFrame", "parse_info_xml"]

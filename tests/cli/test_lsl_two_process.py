@@ -52,7 +52,7 @@ def test_a_second_host_records_the_first_ones_streams_over_lsl_aligned(tmp_path:
     try:
         _wait_for_line(a, "LSL outlets")
         b = _perfcap("record", "-q", "-d", "remote=lsl://a/imu?timeout=30", "-d", "b=synth://imu?rate=100&seed=2",
-                     "--duration", "4", "-o", str(b_path))
+                     "--orientation", "--duration", "4", "-o", str(b_path))
         _out, err = b.communicate(timeout=DEADLINE_S)
         assert b.returncode == 0, err
     finally:
@@ -63,10 +63,13 @@ def test_a_second_host_records_the_first_ones_streams_over_lsl_aligned(tmp_path:
     assert a.returncode == 0
     ra, rb = SessionReader(str(a_path)), SessionReader(str(b_path))
     sent = ra.samples("a/imu")
-    got_name = next(s for s in rb.streams if s.startswith("remote/"))
-    got = rb.samples(got_name)
+    got = rb.samples("remote/imu")
     assert len(got) > 300 and len(rb.samples("b/imu")) > 200
-    assert rb.streams[got_name].channels == ra.streams["a/imu"].channels
+    # what perfcap said of the stream comes along: kind, channels, units, frame; so B fuses its orientation
+    mine, theirs = rb.streams["remote/imu"], ra.streams["a/imu"]
+    assert (mine.kind, mine.channels, mine.units, mine.frame) == (theirs.kind, theirs.channels, theirs.units,
+                                                                  theirs.frame)
+    assert len(rb.samples("remote/orientation")) > 300
     # the same samples, exactly (LSL carries them as float64), in order, none lost or twice
     rows = {r.tobytes(): i for i, r in enumerate(sent.values)}
     assert len(rows) == len(sent)
