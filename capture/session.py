@@ -628,6 +628,10 @@ class SessionReader:
     def streams(self) -> dict[str, StreamInfo]:
         return self._scan.streams
 
+    def encoding(self, topic: str) -> str | None:
+        """The message encoding of a topic's channel (format 1 blocks: ``perfcap.*.v1``; format 2: ``protobuf``)."""
+        return self._enc.get(topic)
+
     @property
     def truncated(self) -> str | None:
         """Why reading stopped before the footer (a killed recorder), or ``None`` for a complete file."""
