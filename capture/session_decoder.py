@@ -33,8 +33,17 @@ from typing import TYPE_CHECKING, Any
 from mcap.decoder import DecoderFactory as _McapDecoderFactory
 from mcap_protobuf.decoder import DecoderFactory as _ProtobufDecoderFactory
 
-from capture.session import RAW_ENCODING, SAMPLES_ENCODING, decode_raw_block, decode_sample_block
-from capture.session_blocks import PROTOBUF, RAW_BLOCK, SAMPLE_BLOCK, decode_raw_run, decode_samples
+from capture.session_blocks import (
+    PROTOBUF,
+    RAW_BLOCK,
+    RAW_ENCODING,
+    SAMPLE_BLOCK,
+    SAMPLES_ENCODING,
+    decode_raw_block,
+    decode_raw_run,
+    decode_sample_block,
+    decode_samples,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Callable

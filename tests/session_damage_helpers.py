@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING
 
 from capture.app.orchestrator import Capture
 from capture.errors import SessionError
-from capture.session import SAMPLES_ENCODING, SessionReader, SessionWriter
-from capture.session_blocks import decode_samples
+from capture.session import SessionReader, SessionWriter
+from capture.session_blocks import SAMPLES_ENCODING, decode_samples
 
 if TYPE_CHECKING:
     from pathlib import Path

@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from capture.app.replay import replay_session
-from capture.session import SAMPLES_ENCODING, SessionReader
+from capture.session import SessionReader
+from capture.session_blocks import SAMPLES_ENCODING
 
 FORMAT1 = Path(__file__).resolve().parents[1] / "data" / "format1_session.mcap"
 

@@ -12,15 +12,8 @@ from hypothesis import strategies as st
 
 from capture.errors import SessionError, SessionExistsError
 from capture.sample import NO_TIME, Chunk, DeviceIdentity, Direction, SampleBatch, StreamInfo
-from capture.session import (
-    DeviceRecord,
-    SessionReader,
-    SessionWriter,
-    decode_raw_block,
-    decode_sample_block,
-    encode_raw_block,
-    encode_sample_block,
-)
+from capture.session import DeviceRecord, SessionReader, SessionWriter
+from capture.session_blocks import decode_raw_block, decode_sample_block, encode_raw_block, encode_sample_block
 
 Q = 16.0 / 32768.0 * 9.80665
 

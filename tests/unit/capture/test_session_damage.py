@@ -18,7 +18,8 @@ from hypothesis import strategies as st
 from session_damage_helpers import chunk_map, make_session, sweep, total_samples
 
 from capture.errors import SessionError
-from capture.session import SessionReader, SessionWriter, decode_raw_block_run, decode_sample_block
+from capture.session import SessionReader, SessionWriter
+from capture.session_blocks import decode_raw_block_run, decode_sample_block
 from capture.session_scan import DEFINITIONS
 
 if TYPE_CHECKING:

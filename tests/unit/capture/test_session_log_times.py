@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING
 from mcap.reader import make_reader
 
 from capture.app.orchestrator import Capture
-from capture.session import LOG_TIME_OFFSET_KEY, SAMPLES_ENCODING, SessionReader
+from capture.session import LOG_TIME_OFFSET_KEY, SessionReader
+from capture.session_blocks import SAMPLES_ENCODING
 from capture.session_decoder import DecoderFactory
 
 if TYPE_CHECKING:
