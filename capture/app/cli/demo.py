@@ -121,4 +121,6 @@ def run(args: argparse.Namespace) -> int:
     out(demo.demo_puppet(reader))
     out(f"\nnext: perfcap info {path}   |   perfcap replay {path} --speed 2   |   "
         f"perfcap export {path} --format csv -o export/   |   perfcap cycle {path} --stream wrist/imu")
+    out(f"      or open {path} in Foxglove: plot /view/wrist/imu.ax, the 3D panel shows /tf/<device>/orientation"
+        " (docs/foxglove.md)")
     return 0
