@@ -73,7 +73,16 @@ from capture.session_blocks import (
     raw_block_span,
 )
 from capture.session_file import MCAP_MAGIC, PendingSession, resolve_target
-from capture.session_view import CLOCK_JSONSCHEMA, EVENT_JSONSCHEMA, LOG, LOG_TOPIC, encode_event, stream_views
+from capture.session_view import (
+    CLOCK_JSONSCHEMA,
+    EVENT_JSONSCHEMA,
+    LOG,
+    LOG_TOPIC,
+    VIEW_PREFIXES,
+    Placement,
+    encode_event,
+    stream_views,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -192,7 +201,7 @@ class SessionWriter:
         self._quantum: dict[str, tuple[float, ...] | None] = {}
         #: per stream: (channel id, encode) of each viewable channel
         self._views: dict[str, list[tuple[int, Any]]] = {}
-        self._orientations = 0
+        self._placement = Placement()   # where orientation frames sit in the 3D view
         self._events = self._w.register_channel("/events", "json", self._w.register_schema(
             "perfcap.DeviceEvent", "jsonschema", json.dumps(EVENT_JSONSCHEMA).encode()))
         if self.views:
@@ -200,6 +209,9 @@ class SessionWriter:
         self._seqs: dict[int, int] = {}
         self._last_log: dict[int, int] = {}
         self.bytes_raw = 0
+        #: samples left out of the viewable channels (their blocks are written): batches whose width is
+        #: not their stream's
+        self.views_skipped = 0
         self.closed = False
 
     def _schema(self, name: str, data: bytes) -> int:
@@ -238,8 +250,7 @@ class SessionWriter:
         self._channel(f"/samples/{info.name}", PROTOBUF, self._smp_schema, {"stream_info": info.to_json()})
         if info.name in self._views or not self.views:
             return
-        views = stream_views(info, self._orientations)
-        self._orientations += any(v.topic.startswith("/tf/") for v in views)
+        views = stream_views(info, self._placement)
         self._views[info.name] = [(self._channel(v.topic, PROTOBUF, self._schema(v.schema.name, v.schema.data),
                                                  v.metadata), v.encode) for v in views]
 
@@ -268,7 +279,15 @@ class SessionWriter:
         cid = self._channels[f"/samples/{batch.stream}"]
         self._add(cid, int(batch.t_bus_ns[0]), encode_samples(batch, self._quantum.get(batch.stream)), now_ns)
         for vid, encode in self._views.get(batch.stream, ()):
-            for t, data in encode(batch, self.log_time_offset_ns):
+            try:
+                msgs = encode(batch, self.log_time_offset_ns)
+            except (ValueError, TypeError, IndexError) as exc:   # a batch its stream does not describe: block kept
+                self.views_skipped += len(batch)
+                if self.views_skipped == len(batch):
+                    log.warning("%s: samples of %s not viewable (%s); their lossless block is kept, and further"
+                                " ones are counted", self.path, batch.stream, exc)
+                continue
+            for t, data in msgs:
                 self._add(vid, t, data, now_ns)
 
     def write_clock(self, state: ClockState, now_ns: int) -> None:
@@ -375,7 +394,8 @@ class SessionReader:
     count and length the file states is bounded by what the file can hold (``session_scan``).
 
     The file is read once, in the constructor; the blocks are kept in memory (compressed by the
-    column encoding, not decoded) and decoded on demand. ``SessionReader.open`` shares one reader per
+    column encoding, not decoded) and decoded on demand; the viewable channels' messages are not kept
+    (they repeat the blocks for viewers). ``SessionReader.open`` shares one reader per
     unchanged file, so replaying many devices of one session reads it once.
 
     Args:
@@ -477,6 +497,8 @@ class SessionReader:
         chunk_ch: dict[int, tuple[str, str, dict[str, str]]] = {}
         summary_ch: dict[int, tuple[str, str, dict[str, str]]] = {}
         by_channel: dict[int, list[bytes]] = {}
+        #: channels perfcap's readers do not read (the viewable ones): their messages are not kept
+        unread: set[int] = set()
         metas: list[Any] = []
         attachments: list[Any] = []
         try:
@@ -490,9 +512,12 @@ class SessionReader:
                 if op == 0x06:
                     for r in rec:
                         if isinstance(r, Message):
-                            by_channel.setdefault(r.channel_id, []).append(r.data)
+                            if r.channel_id not in unread:
+                                by_channel.setdefault(r.channel_id, []).append(r.data)
                         elif isinstance(r, Channel):
                             chunk_ch.setdefault(r.id, (r.topic, r.message_encoding, r.metadata))
+                            if r.topic.startswith(VIEW_PREFIXES):
+                                unread.add(r.id)
                 elif op == 0x04 and isinstance(rec, Channel):
                     summary_ch.setdefault(rec.id, (rec.topic, rec.message_encoding, rec.metadata))
                 elif op == 0x0C and isinstance(rec, Metadata):
@@ -536,6 +561,8 @@ class SessionReader:
         self._recover_definitions(scan, defs, res.header_profile, channels)
         for cid, datas in by_channel.items():
             ch = channels.get(cid)
+            if ch is not None and ch[0].startswith(VIEW_PREFIXES):
+                continue
             if ch is None:
                 self._damage("block of a channel whose definition is lost", f"channel {cid}", len(datas))
                 continue

@@ -123,7 +123,9 @@ def _columns(vals: np.ndarray, quantum: tuple[float, ...] | None) -> list[object
 def encode_samples(b: SampleBatch, quantum: tuple[float, ...] | None = None) -> bytes:
     """A batch as a ``perfcap.SampleBlock`` (channels with an exact quantum stored as integer steps)."""
     n = len(b)
-    vals = np.asarray(b.values, np.float64).reshape(n, -1)
+    vals = np.asarray(b.values, np.float64)
+    if vals.ndim != 2:
+        vals = vals.reshape(n, -1)
     m = _Samples(column=_columns(vals, quantum))
     m.seq.extend(_delta(b.seq))
     m.t_host_ns.extend(_delta(b.t_host_ns))

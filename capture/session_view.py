@@ -7,10 +7,12 @@ live Foxglove server publishes the same messages with the same schemas.
   metadata ``fields`` maps field names back to channel names, ``units`` gives their units). Foxglove's
   plot panel plots ``/view/wrist/imu.ax`` against real time.
 * ``/tf/<stream>``: orientation streams (kinds ``quat`` and ``orientation``, ``w x y z``) as
-  ``foxglove.FrameTransform`` from ``world`` to the stream's frame, each sensor's frame set 0.5 m
-  apart along x so the 3D panel shows them side by side; a pose stream with a skeleton (the puppet) as
+  ``foxglove.FrameTransform`` from ``world`` to the stream's frame, the sensors' frames 0.5 m apart
+  along x in the order they first send an orientation (``Placement``), so the 3D panel shows them side
+  by side; a pose stream with a skeleton (the puppet) as
   ``foxglove.FrameTransforms``, one transform per joint from its parent, so the 3D panel draws the
-  skeleton moving.
+  skeleton moving (perfcap's characters are Y up; the first transform, ``world`` to ``<stream>``,
+  stands them up in Foxglove's Z-up world).
 * ``/log``: the event log as ``foxglove.Log`` (failures and protocol errors as warnings and errors).
 
 This module owns which channels a stream gets and how a batch becomes their messages; ``capture.proto``
@@ -52,6 +54,8 @@ FRAME_TRANSFORM = schema_of(FrameTransform)
 FRAME_TRANSFORMS = schema_of(FrameTransforms)
 LOG = schema_of(Log)
 LOG_TOPIC = "/log"
+#: the topics of the viewable channels (perfcap's own readers read the lossless ones instead)
+VIEW_PREFIXES = ("/view/", "/tf/", LOG_TOPIC)
 
 #: messages of one channel from one batch: ``(bus time ns, message bytes)`` per sample
 Encoded = list[tuple[int, bytes]]
@@ -89,6 +93,8 @@ def sample_view(info: StreamInfo) -> ViewChannel:
     cls = schema.cls
 
     def encode(b: SampleBatch, offset_ns: int) -> Encoded:
+        if b.values.ndim != 2 or b.values.shape[1] != len(names):
+            raise ValueError(f"{b.values.shape[-1]} values a sample where stream {info.name} has {len(names)}")
         out = []
         for t, row in zip(b.t_bus_ns.tolist(), b.values.tolist(), strict=True):
             m = cls(**dict(zip(names, row, strict=True)))
@@ -105,17 +111,31 @@ def _finite(*v: float) -> bool:
     return all(math.isfinite(x) for x in v)
 
 
-def orientation_view(info: StreamInfo, index: int) -> ViewChannel:
+class Placement:
+    """Where each orientation frame sits in the 3D view: the n-th stream to send an orientation gets
+    slot n (``FRAME_SPACING_M`` apart along x), so streams that never send one take no place."""
+
+    def __init__(self) -> None:
+        self._slots: dict[str, int] = {}
+
+    def x(self, stream: str) -> float:
+        slot = self._slots.setdefault(stream, len(self._slots))
+        return FRAME_SPACING_M * slot
+
+
+def orientation_view(info: StreamInfo, placement: Placement) -> ViewChannel:
     """``/tf/<stream>``: the rotation as a ``FrameTransform`` from ``world`` (rows that are not finite
     are left out of this view only)."""
     frame = info.name
-    x = FRAME_SPACING_M * index
 
     def encode(b: SampleBatch, offset_ns: int) -> Encoded:
-        out = []
+        out: Encoded = []
+        x = 0.0
         for t, (w, qx, qy, qz) in zip(b.t_bus_ns.tolist(), b.values.tolist(), strict=True):
             if not _finite(w, qx, qy, qz):
                 continue
+            if not out:
+                x = placement.x(frame)
             m = FrameTransform(timestamp=_stamp(t + offset_ns), parent_frame_id=WORLD, child_frame_id=frame)
             m.translation.x = x
             m.rotation.w, m.rotation.x, m.rotation.y, m.rotation.z = w, qx, qy, qz
@@ -135,6 +155,7 @@ def skeleton_view(info: StreamInfo, skeleton: dict[str, Any]) -> ViewChannel:
         raise ValueError(f"stream {info.name}: its skeleton has {len(parents)} joints, its channels"
                          f" {len(info.channels)}")
     frames = [f"{info.name}/{j}" for j in joints]
+    up = math.sqrt(0.5)   # +90 degrees about x: the character's Y up becomes the world's Z up
 
     def encode(b: SampleBatch, offset_ns: int) -> Encoded:
         out = []
@@ -143,8 +164,10 @@ def skeleton_view(info: StreamInfo, skeleton: dict[str, Any]) -> ViewChannel:
                 continue
             st = _stamp(t + offset_ns)
             msg = FrameTransforms()
+            root = msg.transforms.add(timestamp=st, parent_frame_id=WORLD, child_frame_id=info.name)
+            root.rotation.w, root.rotation.x = up, up
             for j, p in enumerate(parents):
-                tr = msg.transforms.add(timestamp=st, parent_frame_id=WORLD if p < 0 else frames[p],
+                tr = msg.transforms.add(timestamp=st, parent_frame_id=info.name if p < 0 else frames[p],
                                         child_frame_id=frames[j])
                 ox, oy, oz = offsets[j]
                 if p < 0:
@@ -158,12 +181,12 @@ def skeleton_view(info: StreamInfo, skeleton: dict[str, Any]) -> ViewChannel:
     return ViewChannel(f"/tf/{info.name}", FRAME_TRANSFORMS, encode, {"frames": json.dumps(frames)})
 
 
-def stream_views(info: StreamInfo, orientation_index: int = 0) -> list[ViewChannel]:
+def stream_views(info: StreamInfo, placement: Placement | None = None) -> list[ViewChannel]:
     """The viewable channels of a stream: always its samples; an orientation or a skeleton's pose also
-    as transforms (``orientation_index``: the how-manieth orientation stream it is, for its place)."""
+    as transforms (``placement``: where orientation frames go, shared by the streams of one take)."""
     views = [sample_view(info)]
     if info.kind in ORIENTATION_KINDS and len(info.channels) == 4:
-        views.append(orientation_view(info, orientation_index))
+        views.append(orientation_view(info, placement if placement is not None else Placement()))
     sk = info.extra.get(SKELETON_KEY)
     if isinstance(sk, str):
         try:
@@ -178,11 +201,16 @@ _LEVEL = {EventKind.FAILED: Log.ERROR, EventKind.OVERFLOW: Log.ERROR, EventKind.
           EventKind.CLOCK_RESET: Log.WARNING}
 
 
+def _text(s: str) -> str:
+    """``s`` as protobuf strings must be: valid UTF-8 (a lone surrogate, from OS or network text, replaced)."""
+    return s.encode("utf-8", "replace").decode("utf-8")
+
+
 def encode_event(ev: DeviceEvent, offset_ns: int) -> bytes:
     """An event as a ``foxglove.Log`` on ``/log``."""
     text = ev.kind.value + (f": {ev.detail}" if ev.detail else "")
     return bytes(Log(timestamp=_stamp(ev.t_host_ns + offset_ns), level=_LEVEL.get(ev.kind, Log.INFO),
-                     message=text, name=ev.source).SerializeToString())
+                     message=_text(text), name=_text(ev.source)).SerializeToString())
 
 
 # JSON Schemas of the JSON channels, so generic readers validate them
@@ -192,7 +220,8 @@ CLOCK_JSONSCHEMA = {
     "type": "object",
     "properties": {"stream": {"type": "string"}, "t_host_ns": {"type": "integer"}, "epoch": {"type": "integer"},
                    "device_ref_ns": {"type": "integer"}, "host_ref_ns": {"type": "integer"},
-                   "rate": {"type": "number"}, "points": {"type": "integer"}, "pseudo": {"type": "boolean"},
+                   "rate": {"type": ["number", "null"], "description": "null: not finite"},
+                   "points": {"type": "integer"}, "pseudo": {"type": "boolean"},
                    "drift_ppm": {"type": ["number", "null"]}},
     "required": ["stream", "t_host_ns", "epoch", "device_ref_ns", "host_ref_ns", "rate", "points", "pseudo"],
 }

@@ -10,8 +10,8 @@ reset that steps bus times back holds the log time, as in a session).
 
 A stream's channels are made on its first item, from its ``StreamInfo`` as the capture declares it to
 the recorder (a device's streams, a processor's outputs; a phone paired later is asked of the capture
-then); its place in the 3D view (the how-manieth orientation stream) follows the capture's
-declaration order, so it is where a session of the same capture puts it. A stream the capture does not
+then); its place in the 3D view follows the order in which orientation streams first send data
+(``session_view.Placement``), as in a session. A stream the capture does not
 know is published with generic channel names, as the recorder records it.
 
 The publisher is a live subscriber (``Overflow.KEEP_NEWEST``): under overload the bus discards its
@@ -38,7 +38,7 @@ from capture.app.serve.config import FOXGLOVE_PORT
 from capture.bus import Overflow, Subscriber, Subscription
 from capture.errors import ConfigError
 from capture.sample import DeviceEvent, DeviceIdentity, Sample, SampleBatch, StreamInfo
-from capture.session_view import LOG, LOG_TOPIC, encode_event, stream_views
+from capture.session_view import LOG, LOG_TOPIC, Placement, encode_event, stream_views
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable
@@ -54,6 +54,8 @@ log = logging.getLogger(__name__)
 LOOPBACK = "127.0.0.1"
 #: the live subscriber's queue: items waiting beyond it are discarded, oldest first, and counted
 LIVE_QUEUE = 8192
+#: how long stopping waits for the server to close its connections
+STOP_TIMEOUT_S = 2.0
 #: what the Foxglove app shows as the server's name
 SERVER_NAME = "perfcap"
 #: how to open it, said beside the URL
@@ -136,13 +138,20 @@ class FoxgloveServer:
                                 schema=foxglove.Schema(name=schema.name, encoding="protobuf", data=schema.data),
                                 context=self.context, metadata=dict(metadata or {}))
 
-    def stop(self) -> None:
-        """Stop listening and close every connection (once; later calls do nothing)."""
+    def stop(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
+        """Stop listening and close every connection (once; later calls do nothing). An app that is
+        connected but not reading can hold the SDK's close; after ``timeout_s`` the stop goes on in the
+        background and perfcap does not wait for it (said once), so the capture still ends."""
         with self._lock:
             if self.stopped:
                 return
             self.stopped = True
-        self._server.stop()
+        t = threading.Thread(target=self._server.stop, name="foxglove-stop", daemon=True)
+        t.start()
+        t.join(timeout_s)
+        if t.is_alive():
+            log.warning("the Foxglove server did not close within %.0f s (a connected app that stopped reading?);"
+                        " perfcap ends without waiting for it", timeout_s)
 
 
 class _Live:
@@ -178,7 +187,7 @@ class FoxglovePublisher(Subscriber):
         #: UTC ns = bus ns + this (as ``SessionWriter.log_time_offset_ns``)
         self.offset_ns = round(clock.wall_time_s() * 1e9) - clock.now_ns()
         self._views: dict[str, list[ViewChannel]] = {}
-        self._orientations = 0
+        self._placement = Placement()   # where orientation frames sit in the 3D view
         self._live: dict[str, list[_Live]] = {}
         self._log = _Live(server.channel(LOG_TOPIC, LOG), LOG_TOPIC, _no_encode)
         self._failed: set[str] = set()
@@ -196,8 +205,7 @@ class FoxglovePublisher(Subscriber):
         declared keeps its views."""
         if info.name in self._views:
             return
-        views = stream_views(info, self._orientations)
-        self._orientations += any(v.topic.startswith("/tf/") for v in views)
+        views = stream_views(info, self._placement)
         self._views[info.name] = views
 
     def _channels(self, item: Sample | SampleBatch) -> list[_Live]:
@@ -264,7 +272,7 @@ def publish_capture(cap: Capture, server: FoxgloveServer, *,
                     max_items: int = LIVE_QUEUE) -> tuple[FoxglovePublisher, Subscription]:
     """Publish a capture's bus on ``server``: subscribed now, as a live (``KEEP_NEWEST``) subscriber
     named ``foxglove``; the server stops when the capture does. Subscribe after the processors are added
-    (``enable_orientation``), so their streams take their places in the 3D view as in the session.
+    (``enable_orientation``), so their streams are known from the start.
     If subscribing fails, the server is stopped."""
     try:
         pub = FoxglovePublisher(server, cap.clock, cap.streams(), lookup=cap.stream_info)

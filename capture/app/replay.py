@@ -172,7 +172,8 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
                    output: str | None = None, overwrite: bool = False, stop: threading.Event | None = None,
                    on_tick: Callable[[Capture, float], None] | None = None, duration_s: float | None = None,
                    clock: Clock = MONOTONIC, subscribers: list[tuple[Subscriber, Overflow]] | None = None,
-                   orientation: bool | None = None, orientation_filter: str | None = None) -> ReplayReport:
+                   orientation: bool | None = None, orientation_filter: str | None = None,
+                   views: bool = True) -> ReplayReport:
     """Replay every device of a session.
 
     Args:
@@ -185,6 +186,7 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
             streams, rebuild them with the recorded filter and calibration, and verify them too.
             True: also for a session recorded without it (new streams, not verified). False: never.
         orientation_filter: filter for new orientation streams (default: the recorded one, else fusion).
+        views: the ``output`` session also holds the viewable channels (``SessionWriter``).
 
     Raises:
         SessionError: unreadable session, or nothing to replay.
@@ -198,7 +200,7 @@ def replay_session(path: str, *, speed: float = 1.0, loop: bool = False, verify:
     q = quote(path, safe="/:._-~")
     urls = [f"{name}=replay://{q}?device={quote(name)}&speed={speed!r}&loop={'true' if loop else 'false'}"
             for name in reader.devices]
-    cap = Capture(urls, output=output, overwrite=overwrite, clock=clock,
+    cap = Capture(urls, output=output, overwrite=overwrite, clock=clock, views=views,
                   meta={"replay_of": path, "speed": repr(speed)})
     recorded_orient = {n: i for n, i in reader.streams.items() if i.kind == "orientation"}
     new_streams: set[str] = set()

@@ -59,6 +59,8 @@ if TYPE_CHECKING:
 
 MAGIC: Final = b"LSLc"
 VERSION: Final = 1
+#: how long a resolve that found its stream waits for a second one answering the same query, s
+AMBIGUITY_WAIT_S = 0.5
 #: magic, version, format, reserved, channels, count, payload length; then the header's CRC-32
 HEADER: Final = struct.Struct("<4sBBHIII")
 HEADER_SIZE: Final = HEADER.size + 4
@@ -184,6 +186,7 @@ class LslTransport(Transport):
         "name": Option(str, "", "the stream's LSL name (the same as the address)"),
         "type": Option(str, "", "the stream's LSL type (EEG, MoCap, ...)"),
         "source_id": Option(str, "", "the stream's LSL source_id"),
+        "hostname": Option(str, "", "the host the stream comes from (as perfcap devices lists it)"),
         "timeout": Option(float, 2.0, "seconds to wait for the stream when resolving it", min=0.05, max=600.0),
         "max_samples": Option(int, 1024, "most samples per pulled chunk", min=1, max=1 << 20),
         "buffer_s": Option(int, 360, "the inlet's buffer, s of samples (x100 samples at an irregular rate)",
@@ -197,7 +200,8 @@ class LslTransport(Transport):
             raise ConfigError(f"{self.url}: the address names stream {address!r} but name={name!r}; give one",
                               source=self.url)
         self.query: dict[str, str] = {k: v for k, v in (("name", address or name), ("type", self.opts["type"]),
-                                                         ("source_id", self.opts["source_id"])) if v}
+                                                         ("source_id", self.opts["source_id"]),
+                                                         ("hostname", self.opts["hostname"])) if v}
         if not self.query:
             raise ConfigError(f"lsl:// needs a stream to look for; expected {self.usage}", source=self.url)
         self._pred = " and ".join(f"{k}={_literal(v)}" for k, v in self.query.items())
@@ -239,6 +243,8 @@ class LslTransport(Transport):
             raise DeviceUnavailableError(f"no LSL stream with {self.query_text} answered within {timeout:g} s"
                                          " (perfcap devices lists the LSL streams it sees)", source=self.url)
         info = found[0]
+        if self._first is None:
+            self._refuse_ambiguity(lsl, pred, timeout)
         fmt, channels = int(info.channel_format()), int(info.channel_count())
         if self._first is not None and self._first[1:] != (channels, fmt):
             raise DeviceInitError(f"{self.url}: the LSL stream came back with {channels} channels of format {fmt},"
@@ -255,6 +261,20 @@ class LslTransport(Transport):
         self._fmt, self._channels = fmt, channels
         self._xml = full.as_xml()
         return inlet
+
+    def _refuse_ambiguity(self, lsl: Any, pred: str, timeout: float) -> None:
+        """More than one stream answering the query (two hosts whose devices have the same names) is an
+        error that lists them, never one of them picked at random.
+
+        Raises:
+            DeviceUnavailableError: naming each stream that answered and how to choose one.
+        """
+        more = {i.uid(): i for i in lsl.resolve_bypred(pred, 2, min(timeout, AMBIGUITY_WAIT_S))}
+        if len(more) < 2:
+            return
+        seen = "; ".join(f"{i.name()} from {i.hostname()} (source_id {i.source_id()})" for i in more.values())
+        raise DeviceUnavailableError(f"{len(more)} LSL streams answer {self.query_text}: {seen}; choose one with"
+                                     " hostname=HOST or source_id=ID", source=self.url)
 
     def stream_xml(self) -> str:
         """The stream's full LSL description (XML), resolving it if not done yet.

@@ -212,6 +212,8 @@ def test_malformed_trajectories(tmp_path, capsys, content, message):
     (["--input", "{walk}", "-o", "{tmp}/no/such/dir/x.bvh"], "the folder {tmp}/no/such/dir does not exist"),
     (["--input", "{walk}", "--timeline", "{tmp}"], "--timeline {tmp} is a directory"),
     (["--input", "{walk}", "--duration", "3"], "--duration is for --phone"),
+    (["--input", "{walk}", "--foxglove"], "--foxglove is for --phone"),
+    (["--phone", "synth://imu", "--foxglove=70000"], "--foxglove=70000: a port is 0"),
     (["--input", "{walk}", "--device", "phone"], "--device chooses the phone of a --session"),
     (["--input", "{walk}", "--fast"], "--fast is for --vmc from an --input or a --session"),
     (["--session", "{untouched}", "--device", "pen"], ("has no attitude stream of a device 'pen'; phones with one:"

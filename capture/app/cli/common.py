@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from types import FrameType
 
     from capture.app.config import Settings
+    from capture.app.foxglove_live import FoxgloveServer
     from capture.app.orchestrator import Capture, CaptureReport
 
 EXIT_BAD_INPUT = 2
@@ -101,6 +102,38 @@ def live_line(cap: Capture, elapsed: float) -> None:
     print(f"[{elapsed:6.1f} s] " + "; ".join(parts), file=sys.stderr, flush=True)
 
 
+def foxglove_args(p: argparse.ArgumentParser) -> None:
+    """``--foxglove[=PORT]`` and ``--foxglove-host`` (``record``, ``puppet --phone``; serve's come from its
+    settings)."""
+    from capture.app.serve.config import FOXGLOVE_PORT
+
+    p.add_argument("--foxglove", nargs="?", const=str(FOXGLOVE_PORT), metavar="PORT",
+                   help="also serve the live data to the Foxglove app (its WebSocket connection) on this port"
+                        f" (bare: {FOXGLOVE_PORT}; 0: any free port)")
+    p.add_argument("--foxglove-host", metavar="HOST", help="address the --foxglove server listens on (default"
+                   " 127.0.0.1, this machine only; it has no authentication)")
+
+
+def foxglove_server(args: argparse.Namespace) -> FoxgloveServer | None:
+    """The ``--foxglove`` server, listening (None without the flag).
+
+    Raises:
+        ConfigError: a bad port, ``--foxglove-host`` without ``--foxglove``, or the port cannot be bound.
+    """
+    if args.foxglove is None:
+        if args.foxglove_host:
+            raise ConfigError("--foxglove-host needs --foxglove[=PORT]")
+        return None
+    from capture.app.foxglove_live import LOOPBACK, FoxgloveServer, parse_port
+
+    return FoxgloveServer(args.foxglove_host or LOOPBACK, parse_port(args.foxglove))
+
+
+#: ``--no-views`` of the commands that record (``[recorder] views = false``)
+NO_VIEWS_HELP = ("record the lossless channels only, not the viewable ones Foxglove shows (/view, /tf, /log):"
+                 " about a third of the disk ([recorder] views)")
+
+
 def settings(args: argparse.Namespace, serve: dict[str, Any] | None = None) -> Settings:
     """The settings of a command: its flags over ``PERFCAP_*`` over ``--config``/``--profile`` over the
     defaults (``serve``: the ``[serve]`` values its flags give)."""
@@ -112,6 +145,8 @@ def settings(args: argparse.Namespace, serve: dict[str, Any] | None = None) -> S
         overrides["recorder"]["max_loss_s"] = given["max_loss"]
     if given.get("overwrite"):
         overrides["recorder"]["overwrite"] = True
+    if given.get("no_views"):
+        overrides["recorder"]["views"] = False
     if given.get("orientation") is not None or given.get("filter"):
         overrides["orientation"] = {"enabled": given.get("orientation"), "filter": given.get("filter")}
     if given.get("calibration_dir"):

@@ -12,6 +12,8 @@ from capture.app.cli.common import (
     SECONDS,
     check_duration,
     err,
+    foxglove_args,
+    foxglove_server,
     input_file,
     live_line,
     out,
@@ -59,6 +61,7 @@ def add_parser(sub: Subcommands) -> None:
     pp.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="with --phone: stop after this long"
                     " (default: Ctrl-C)")
     pp.add_argument("--hold", action="store_true", help="the phone counts as held throughout (touches ignored)")
+    foxglove_args(pp)   # with --phone: the puppet's skeleton moving in Foxglove's 3D panel, live
     pp.add_argument("-q", "--quiet", action="store_true", help="no live status lines")
     pp.set_defaults(func=run)
 
@@ -76,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.phone:
             raise ConfigError("--duration is for --phone (a trajectory or a session is driven to its end)")
         check_duration(args.duration)
+    if (args.foxglove is not None or args.foxglove_host) and not args.phone:
+        raise ConfigError("--foxglove is for --phone (the live puppet); open a session's file in Foxglove instead")
     if args.fast and not (args.vmc and not args.phone):
         raise ConfigError("--fast is for --vmc from an --input or a --session (a live phone sets its own pace)")
     if args.device is not None and not args.session:
@@ -159,13 +164,26 @@ def _live(args: argparse.Namespace, spec: DeviceSpec, performance: PuppetRun) ->
     from capture.app.orchestrator import Capture
     from capture.app.puppet_run import PuppetFollower
 
-    cap = Capture([spec], meta={"command": " ".join(sys.argv)})
+    fox = foxglove_server(args)
+    try:
+        cap = Capture([spec], meta={"command": " ".join(sys.argv)})
+    except BaseException:
+        if fox is not None:
+            fox.stop()
+        raise
     try:
         dev = cap.devices[0]
         follower = PuppetFollower.for_device(dev.name, dev.streams, performance, hold=True if args.hold else None)
         cap.add_processor(follower, name="puppet")   # follows the phone, publishes <device>/puppet
+        if fox is not None:   # the pose stream's skeleton (/tf/<device>/puppet) and the phone's streams
+            from capture.app import foxglove_live
+
+            foxglove_live.publish_capture(cap, fox)
+            err(f"Foxglove: open {fox.url} {foxglove_live.HOW_TO_OPEN}; the 3D panel shows /tf/{dev.name}/puppet")
     except BaseException:
         cap.stop()
+        if fox is not None:
+            fox.stop()
         raise
     notes = []
     if follower.hold:

@@ -6,10 +6,13 @@ import sys
 from typing import TYPE_CHECKING
 
 from capture.app.cli.common import (
+    NO_VIEWS_HELP,
     SECONDS,
     check_duration,
     err,
     folder_arg,
+    foxglove_args,
+    foxglove_server,
     live_line,
     orientation_args,
     output_file,
@@ -23,11 +26,9 @@ if TYPE_CHECKING:
     import argparse
 
     from capture.app.cli.common import Subcommands
-    from capture.app.foxglove_live import FoxgloveServer
 
 
 def add_parser(sub: Subcommands) -> None:
-    from capture.app.serve.config import FOXGLOVE_PORT
     from devices import SPEC_EXAMPLE, SPEC_FORM
 
     r = sub.add_parser("record", help="record devices to a session file")
@@ -38,6 +39,7 @@ def add_parser(sub: Subcommands) -> None:
     r.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="stop after this long (default: Ctrl-C)")
     r.add_argument("-o", "--output", required=True, metavar="SESSION.mcap")
     r.add_argument("--overwrite", action="store_true", help="replace an existing session file")
+    r.add_argument("--no-views", action="store_true", help=NO_VIEWS_HELP)
     r.add_argument("--max-loss", type=float, metavar="SECONDS", help="most data a crash may lose (default 1 s)")
     r.add_argument("--json", action="store_true", help="print the report as JSON")
     r.add_argument("-q", "--quiet", action="store_true", help="no live status lines")
@@ -46,11 +48,7 @@ def add_parser(sub: Subcommands) -> None:
     r.add_argument("--calibration-dir", metavar="DIR", help="where calibrations are stored (perfcap calibrate)")
     r.add_argument("--lsl", action="store_true", help="also publish every stream as a Lab Streaming Layer outlet"
                    " (LabRecorder records them aligned with other LSL sources)")
-    r.add_argument("--foxglove", nargs="?", const=str(FOXGLOVE_PORT), metavar="PORT",
-                   help="also serve the live data to the Foxglove app (its WebSocket connection) on this port"
-                        f" (bare: {FOXGLOVE_PORT}; 0: any free port)")
-    r.add_argument("--foxglove-host", metavar="HOST", help="address the --foxglove server listens on (default"
-                   " 127.0.0.1, this machine only; it has no authentication)")
+    foxglove_args(r)
     r.set_defaults(func=run)
 
 
@@ -70,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         from capture.app.lsl_out import load_pylsl
 
         load_pylsl()  # a machine without liblsl is told so before any file is made
-    fox = _foxglove_server(args)  # before any file is made: a port in use leaves nothing behind
+    fox = foxglove_server(args)  # before any file is made: a port in use leaves nothing behind
     stop = stop_on_signals()
     cap = Capture(specs, output=args.output, overwrite=s.recorder.overwrite, max_loss_s=s.recorder.max_loss_s,
                   fsync=s.recorder.fsync, views=s.recorder.views, recorder_max_bytes=s.bus.recorder_max_mb << 20,
@@ -108,17 +106,3 @@ def run(args: argparse.Namespace) -> int:
     report = cap.run(args.duration, stop=stop, on_tick=None if args.quiet else live_line)
     return print_capture(report, args.json)
 
-
-def _foxglove_server(args: argparse.Namespace) -> FoxgloveServer | None:
-    """The ``--foxglove`` server, listening (None without the flag).
-
-    Raises:
-        ConfigError: a bad port, ``--foxglove-host`` without ``--foxglove``, or the port cannot be bound.
-    """
-    if args.foxglove is None:
-        if args.foxglove_host:
-            raise ConfigError("--foxglove-host needs --foxglove[=PORT]")
-        return None
-    from capture.app.foxglove_live import LOOPBACK, FoxgloveServer, parse_port
-
-    return FoxgloveServer(args.foxglove_host or LOOPBACK, parse_port(args.foxglove))

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 from capture.app.cli.common import (
     EXIT_CHECK_FAILED,
+    NO_VIEWS_HELP,
     SECONDS,
     check_duration,
     err,
@@ -17,6 +18,7 @@ from capture.app.cli.common import (
     out,
     output_file,
     seconds_since,
+    settings,
     stop_on_signals,
 )
 from capture.clock import MONOTONIC
@@ -43,6 +45,7 @@ def add_parser(sub: Subcommands) -> None:
     rp.add_argument("--duration", type=SECONDS, metavar="SECONDS", help="stop after this long")
     rp.add_argument("-o", "--output", metavar="SESSION.mcap", help="record the replay to a new session")
     rp.add_argument("--overwrite", action="store_true")
+    rp.add_argument("--no-views", action="store_true", help=NO_VIEWS_HELP)
     rp.add_argument("--no-verify", action="store_true", help="skip comparing with the recorded samples")
     rp.add_argument("--json", action="store_true")
     rp.add_argument("-q", "--quiet", action="store_true")
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     rep = replay_session(args.session, speed=speed, loop=args.loop, verify=not args.no_verify, output=args.output,
                          overwrite=args.overwrite, stop=stop, duration_s=args.duration,
                          on_tick=None if args.quiet else live_line, orientation=args.orientation,
-                         orientation_filter=args.filter)
+                         orientation_filter=args.filter, views=settings(args).recorder.views)
     wall = seconds_since(t0)
     ver = rep.verification
     if args.json:

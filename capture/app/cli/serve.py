@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 from capture import __version__
 from capture.app.cli.common import (
     EXIT_BAD_INPUT,
+    NO_VIEWS_HELP,
     SECONDS,
     SECONDS_OR_ZERO,
     check_duration,
@@ -43,6 +44,7 @@ def add_parser(sub: Subcommands) -> None:
     sv.add_argument("-d", "--device", action="append", metavar="DEVICE", help="also capture this device")
     sv.add_argument("--record", metavar="SESSION.mcap", help="record from the start (else POST /api/record/start)")
     sv.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    sv.add_argument("--no-views", action="store_true", help=NO_VIEWS_HELP)
     sv.add_argument("--rotate-token", action="store_true", help="make a new pairing token before starting")
     add_flags(sv, ServeConfig)  # one flag per [serve] setting (capture.app.serve.config)
     _bare_flag(sv, "--foxglove", str(FOXGLOVE_PORT))  # --foxglove alone: the Foxglove app's default port
@@ -123,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
         load_pylsl()  # a machine without liblsl is told so before anything starts
     service = Service(cfg, specs, reconnect=s.reconnect_policy(),
                       capture_options={"max_loss_s": s.recorder.max_loss_s, "fsync": s.recorder.fsync,
+                                       "views": s.recorder.views,
                                        "recorder_max_bytes": s.bus.recorder_max_mb << 20,
                                        "live_queue": s.bus.live_queue})
 

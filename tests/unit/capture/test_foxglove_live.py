@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
+from wait_helpers import DEADLINE_S
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
@@ -34,7 +35,6 @@ from capture.errors import ConfigError
 from capture.sample import DeviceEvent, DeviceIdentity, EventKind, Sample, StreamInfo
 from capture.session import SessionReader
 from capture.session_view import LOG_TOPIC, sample_view
-from tests.wait_helpers import DEADLINE_S
 
 if TYPE_CHECKING:
     from pathlib import Path

@@ -723,3 +723,43 @@ def test_paced_frames_go_at_their_own_times_and_none_is_skipped(seed):
             assert at == due
         behind = max(behind, at - due)
     assert behind <= 0.5e9  # late ones catch up: no more behind than the stall
+
+
+def test_the_puppets_pose_stream_is_a_skeleton_in_the_3d_view(retargeter, tmp_path):
+    """The follower's pose stream carries its skeleton, so a session (and the live Foxglove server) shows
+    the character as one transform per joint from its parent, stood up in Foxglove's Z-up world."""
+    import generic_mcap_check
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from capture.session import SessionWriter
+
+    ident = DeviceIdentity("phone", "ph")
+    att = StreamInfo("ph/attitude", "quat", ("w", "x", "y", "z"), ("1",) * 4, 50.0, ident)
+    run = PuppetRun(fresh(retargeter), rate=50.0)
+    follower = PuppetFollower.for_device("ph", [att], run)
+    poses: list[Sample] = []
+    follower.bind(poses.append)
+    bus = SampleBus()
+    bus.subscribe(follower, policy=Overflow.NEVER_DROP)
+    for k in range(30):
+        bus.publish(Sample("ph/attitude", k, 0, None, k * 20_000_000 + 3_000, (1.0, 0.0, 0.0, 0.0)))
+    bus.close()
+    assert len(poses) > 20
+    path = tmp_path / "pose.mcap"
+    w = SessionWriter(str(path), fsync=False)
+    w.add_stream(follower.pose)
+    w.write_samples(SampleBatch.from_samples(follower.pose.name, poses, len(follower.pose.channels)), 0)
+    w.close()
+    assert generic_mcap_check.check(path).problems == []
+    sk = run.retargeter.skeleton
+    with path.open("rb") as f:
+        msgs = [d for _, c, _, d in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+                if c.topic == "/tf/ph/puppet"]
+    assert len(msgs) == len(poses)
+    tf = msgs[0].transforms
+    assert len(tf) == sk.n_joints + 1 and (tf[0].parent_frame_id, tf[0].child_frame_id) == ("world", "ph/puppet")
+    for j in range(sk.n_joints):
+        p = int(sk.parents[j])
+        assert tf[j + 1].child_frame_id == f"ph/puppet/{sk.names[j]}"
+        assert tf[j + 1].parent_frame_id == ("ph/puppet" if p < 0 else f"ph/puppet/{sk.names[p]}")

@@ -15,7 +15,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from capture.proto import identifier
 from capture.sample import NO_TIME, Chunk, DeviceIdentity, Direction, SampleBatch, StreamInfo
 from capture.session_blocks import decode_raw_run, decode_samples, encode_raw, encode_samples
-from capture.session_view import SKELETON_KEY, encode_event, stream_views
+from capture.session_view import SKELETON_KEY, Placement, encode_event, stream_views
 
 DEV = DeviceIdentity("synth", "d")
 
@@ -128,7 +128,12 @@ def test_identifiers_are_valid_and_unique() -> None:
 
 def test_orientation_streams_are_frame_transforms_and_non_finite_rows_are_left_out() -> None:
     info = StreamInfo("wrist/orientation", "orientation", ("w", "x", "y", "z"), ("1",) * 4, 200.0, DEV)
-    views = stream_views(info, orientation_index=2)
+    placement = Placement()
+    quiet = stream_views(StreamInfo("ankle/quat", "quat", ("w", "x", "y", "z"), ("1",) * 4, 200.0, DEV), placement)
+    placement.x("pad/orientation")
+    placement.x("head/orientation")   # two streams sent orientations first; the quiet one never sends
+    views = stream_views(info, placement)
+    assert len(quiet) == 2
     assert [v.topic for v in views] == ["/view/wrist/orientation", "/tf/wrist/orientation"]
     tf = views[1]
     assert tf.schema.name == "foxglove.FrameTransform"
@@ -156,10 +161,13 @@ def test_a_skeleton_pose_is_one_transform_per_joint_from_its_parent() -> None:
     m = tf.schema.cls.FromString(data)
     got = [(t.parent_frame_id, t.child_frame_id, t.translation.x, t.translation.y, t.translation.z)
            for t in m.transforms]
-    assert got == [("world", "phone/puppet/hips", 1.0, 0.9, 2.0),
+    up = m.transforms[0].rotation   # Y up stood up in Foxglove's Z-up world: +90 degrees about x
+    assert (up.w, up.x, up.y, up.z) == pytest.approx((0.5**0.5, 0.5**0.5, 0, 0))
+    assert got == [("world", "phone/puppet", 0.0, 0.0, 0.0),
+                   ("phone/puppet", "phone/puppet/hips", 1.0, 0.9, 2.0),
                    ("phone/puppet/hips", "phone/puppet/spine", 0.0, 0.1, 0.0),
                    ("phone/puppet/spine", "phone/puppet/head", 0.0, 0.3, 0.0)]
-    assert m.transforms[1].rotation.w == pytest.approx(0.7071)
+    assert m.transforms[2].rotation.w == pytest.approx(0.7071)
 
 
 def test_a_skeleton_that_does_not_fit_its_channels_costs_only_its_3d_view(caplog: pytest.LogCaptureFixture) -> None:
@@ -179,3 +187,34 @@ def test_events_are_foxglove_logs_with_levels() -> None:
     assert (m.level, m.name, m.message) == (Log.ERROR, "pad", "failed: no reply")
     assert m.timestamp.nanos == 107
     assert Log.FromString(encode_event(DeviceEvent("pad", EventKind.OPENED, 7), 0)).level == Log.INFO
+
+
+def test_odd_inputs_cost_the_views_at_most_never_the_recording(tmp_path, caplog: pytest.LogCaptureFixture) -> None:
+    """A batch wider than its stream, an event with a lone surrogate, a clock fit whose rate is not finite and
+    an empty batch: the take is written, its blocks kept, the file passes the generic check, and perfcap's
+    reader keeps none of the viewable channels' messages (it reads the blocks)."""
+    import generic_mcap_check
+
+    from capture.sample import ClockState, DeviceEvent, EventKind
+    from capture.session import SessionReader, SessionWriter
+
+    info = StreamInfo("d/imu", "imu", ("ax", "ay"), ("m/s^2",) * 2, 100.0, DEV)
+    w = SessionWriter(str(tmp_path / "odd.mcap"), fsync=False)
+    w.add_stream(info)
+    ok = SampleBatch(info.name, np.arange(3), np.arange(3), np.full(3, NO_TIME), np.arange(3) + 10, np.ones((3, 2)))
+    wide = SampleBatch(info.name, np.arange(3, 5), np.arange(3, 5), np.full(2, NO_TIME), np.arange(2) + 20,
+                       np.ones((2, 3)))
+    w.write_samples(ok, 0)
+    w.write_samples(wide, 0)
+    w.write_event(DeviceEvent("d\ud800", EventKind.NOTE, 30, "bad \udcff text"), 0)
+    w.write_clock(ClockState("d", 40, 0, 0, 0, float("nan"), 0, True), 0)
+    w.write_clock(ClockState("d", 41, 0, 0, 0, float("inf"), 0, True), 0)
+    w.close()
+    assert w.views_skipped == 2 and "not viewable" in caplog.text
+    assert generic_mcap_check.check(tmp_path / "odd.mcap").problems == []
+    r = SessionReader(str(tmp_path / "odd.mcap"))
+    assert [len(b) for b in r.sample_blocks()] == [3]   # the wide block is read as damaged, as in format 1
+    assert r.damaged and r.encoding("/samples/d/imu") == "protobuf"
+    assert r.encoding("/view/d/imu") is None and r.encoding("/log") is None   # not kept
+    assert [c["rate"] for c in r.clock_states()] == [None, None]
+    assert decode_samples("x", encode_samples(SampleBatch.from_samples("x", [], 2))).values.shape == (0, 2)

@@ -197,6 +197,32 @@ def test_string_streams_are_refused_clearly():
 
 
 @needs_lsl
+def test_two_streams_answering_one_name_are_an_error_that_lists_them():
+    """Two hosts whose devices have the same names publish streams of one name: lsl://NAME refuses to pick
+    one at random, lists both, and source_id= chooses."""
+    name = f"twin-{uuid.uuid4().hex[:6]}"
+    a = pylsl.StreamOutlet(pylsl.StreamInfo(name, "MoCap", 2, 100.0, "float32", f"host-a-{name}"))
+    b = pylsl.StreamOutlet(pylsl.StreamInfo(name, "MoCap", 2, 100.0, "float32", f"host-b-{name}"))
+    try:
+        end = time.monotonic() + DEADLINE_S
+        msg = ""
+        while "2 LSL streams answer" not in msg and time.monotonic() < end:
+            try:
+                open_device(f"lsl://{name}?timeout=5").close()
+            except DeviceUnavailableError as exc:
+                msg = str(exc)
+        assert "2 LSL streams answer" in msg and f"host-a-{name}" in msg and f"host-b-{name}" in msg, msg
+        assert "source_id=" in msg
+        dev = _resolving(lambda: open_device(f"lsl://{name}?source_id=host-b-{name}&timeout=5"), "host b's twin")
+        try:
+            assert dev.streams[0].extra["lsl_source_id"] == f"host-b-{name}"
+        finally:
+            dev.close()
+    finally:
+        del a, b
+
+
+@needs_lsl
 def test_irregular_int_stream_and_lost_sender(tmp_path):
     """An int16 stream at LSL's irregular rate has no rate; the sender going away and coming back is
     DISCONNECTED then RECONNECTED, like any device."""
