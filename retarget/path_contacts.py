@@ -11,7 +11,7 @@ the procedural clips) uses those. A flight is a run of no contact of at least ``
 height, from the last planted key to the first, fits a parabola falling at a plausible gravity (between
 ``g_min`` and ``g_max``), which tells a jump from a detection gap.
 
-Known limit: on the stylised CMU takes 131_01/02 (shuffles and kicks) short runs of no contact, 0.06 to
+Known limit: on the stylised CMU take 131_02 (shuffles and kicks) ten short runs of no contact, 0.06 to
 0.13 s, fall at 3.7 to 8.3 m/s^2 and pass the guard as flights; on the walk, run and jump of ``cmu_016``
 only the real flights do.
 
