@@ -38,6 +38,8 @@ if TYPE_CHECKING:
 
 #: below this, a key's neighbours are too close to give it a frame, m
 STILL_M = 1e-3
+#: framing keys closer than this are one point: the key keeps their midpoint's displacement instead, m
+DEGENERATE_M = 1e-6
 #: the smallest scale a segment is given (handles dragged onto each other)
 S_MIN = 0.05
 #: the scale search stops when the arclength is this close, in parts of the segment's length
@@ -63,16 +65,18 @@ def _rot90(a: FloatArray) -> FloatArray:
     return np.stack([a[..., 1], -a[..., 0]], axis=-1)
 
 
-def _frame_keys(p: FloatArray, i: int) -> tuple[int, int]:
-    """The keys whose chord frames key ``i``: its neighbours, or where the path stands still there, the
-    nearest keys on either side (widened together, clipped to the path) at least ``STILL_M`` apart."""
-    n = len(p) - 1
-    k = 1
-    while True:
-        lo, hi = max(i - k, 0), min(i + k, n)
-        if float(np.hypot(*(p[hi] - p[lo]))) >= STILL_M or (lo == 0 and hi == n):
-            return lo, hi
-        k *= 2
+def frame_keys(points: FloatArray, i: int) -> tuple[int, int]:
+    """The keys that frame key ``i`` of ``points`` ``(n+1, d)``: its neighbours, or, where the path stands
+    still, on each side the nearest key at least ``STILL_M / 2`` from it (clipped to the path's ends), so no
+    two keys are ever framed as the same point (which would leave them tied to each other only)."""
+    n = len(points) - 1
+    lo = i - 1
+    while lo > 0 and float(np.linalg.norm(points[i] - points[lo])) < STILL_M / 2:
+        lo -= 1
+    hi = i + 1
+    while hi < n and float(np.linalg.norm(points[hi] - points[i])) < STILL_M / 2:
+        hi += 1
+    return lo, hi
 
 
 class HorizontalPath:
@@ -101,10 +105,10 @@ class HorizontalPath:
         vals: list[float] = []
         r = 0
         for i in range(1, n1 - 1):
-            lo, hi = _frame_keys(p, i)
+            lo, hi = frame_keys(p, i)
             d = p[hi] - p[lo]
             dn = float(np.hypot(*d))
-            if dn < STILL_M:   # the whole path stands still: the midpoint of the neighbours' displacement
+            if dn < DEGENERATE_M:   # its framing keys coincide (all of the path still): their midpoint
                 w = 1.0 / np.sqrt(STILL_M)
                 for c in (0, 1):
                     rows += [r + c] * 3
@@ -115,7 +119,7 @@ class HorizontalPath:
             e = p[i] - p[lo]
             u = float(e @ d) / dn**2
             v = float(e @ _rot90(d)) / dn**2
-            w = 1.0 / np.sqrt(dn)
+            w = 1.0 / np.sqrt(max(dn, STILL_M))
             # r_x = x_i - (1-u) x_lo - u x_hi - v (z_hi - z_lo)
             # r_z = z_i - (1-u) z_lo - u z_hi + v (x_hi - x_lo)
             ix, iz, ax, az, bx, bz = 2 * i, 2 * i + 1, 2 * lo, 2 * lo + 1, 2 * hi, 2 * hi + 1
@@ -234,4 +238,4 @@ class _Segment:
         return s, MAX_ITER
 
 
-__all__ = ["STILL_M", "S_MIN", "HorizontalPath", "Solved"]
+__all__ = ["STILL_M", "S_MIN", "HorizontalPath", "Solved", "frame_keys"]

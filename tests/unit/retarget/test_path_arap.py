@@ -35,6 +35,8 @@ def random_path(rng: np.random.Generator) -> tuple[np.ndarray, list[int]]:
     step = rng.uniform(0.002, 0.03, n)
     p = np.cumsum(np.column_stack([np.cos(heading), np.sin(heading)]) * step[:, None], axis=0)
     p += rng.normal(0, 0.003, p.shape)   # sway and noise
+    for k in rng.integers(1, n - 1, int(rng.integers(0, 4))):   # pauses: runs of keys at one point
+        p[k:k + int(rng.integers(1, 6))] = p[k]
     inner = sorted(set(rng.choice(np.arange(5, n - 5), int(rng.integers(0, max(1, n // 40))), replace=False)))
     return p, [0, *[int(k) for k in inner], n - 1]
 
