@@ -14,15 +14,12 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-import pytest
 from wait_helpers import DEADLINE_S
 
 from capture.session import SessionReader
 
 if TYPE_CHECKING:
     from pathlib import Path
-
-pytest.importorskip("pylsl", reason="needs pylsl (pip install pylsl: its wheel bundles liblsl)")
 
 
 def _perfcap(*args: str) -> subprocess.Popen[str]:

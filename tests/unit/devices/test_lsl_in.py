@@ -16,6 +16,7 @@ import time
 import uuid
 
 import numpy as np
+import pylsl  # a dependency, liblsl in its wheel: not loading is a failure, never a skip
 import pytest
 from wait_helpers import DEADLINE_S, wait_until
 
@@ -29,17 +30,6 @@ from devices import DeviceSpec, DeviceState, open_device
 from devices.codecs.lsl import LslCodec, LslFrame, parse_info_xml
 from devices.lsl import channel_names
 from devices.transports.lsl import FORMATS, pack_frame
-
-try:
-    import pylsl
-
-    pylsl.local_clock()
-    NO_LSL = ""
-except Exception as exc:  # any reason pylsl or its liblsl cannot load
-    pylsl = None
-    NO_LSL = f"pylsl cannot load: {type(exc).__name__}: {exc}"
-
-needs_lsl = pytest.mark.skipif(bool(NO_LSL), reason=NO_LSL or "pylsl loads")
 
 RATE = 200.0
 N_PUSHED = 300  # 1.5 s at 200 Hz
@@ -89,8 +79,6 @@ def _lsl_offset_ns() -> int:
 def recorded(tmp_path_factory):
     """A 6-channel 200 Hz float32 outlet pushed in real time with explicit timestamps, recorded by
     ``Capture`` from ``lsl://NAME``; the outlet is gone when the fixture returns."""
-    if NO_LSL:
-        pytest.skip(NO_LSL)
     name = f"perfcap-in-{uuid.uuid4().hex[:8]}"
     path = str(tmp_path_factory.mktemp("lsl") / "take.mcap")
     outlet = _outlet(name)
@@ -116,7 +104,6 @@ def recorded(tmp_path_factory):
     return {"path": path, "values": values, "stamps": stamps, "offset": offset, "report": rep}
 
 
-@needs_lsl
 def test_every_pushed_sample_is_recorded_with_the_senders_timestamps(recorded):
     r = SessionReader.open(recorded["path"])
     info = r.streams["imu/mocap"]
@@ -137,7 +124,6 @@ def test_every_pushed_sample_is_recorded_with_the_senders_timestamps(recorded):
     assert recorded["report"].devices["imu"]["framing_errors"] == 0
 
 
-@needs_lsl
 def test_replay_is_bit_identical_with_no_lsl(recorded, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "pylsl", None)  # any use of LSL in the replay would fail
     out = str(tmp_path / "again.mcap")
@@ -150,7 +136,6 @@ def test_replay_is_bit_identical_with_no_lsl(recorded, tmp_path, monkeypatch):
         "imu/mocap"].channels
 
 
-@needs_lsl
 @pytest.mark.parametrize("url", ["lsl://nobody-{u}?timeout=0.2", "lsl://?type=Nope{u}&source_id=zz{u}&timeout=0.2"])
 def test_no_stream_is_a_clear_error(url):
     url = url.format(u=uuid.uuid4().hex[:6])
@@ -172,7 +157,6 @@ def own_logging():
     root.handlers, root.level = saved, level
 
 
-@needs_lsl
 def test_no_stream_on_the_command_line_is_one_line(tmp_path, capsys, own_logging):
     rc = cli_main(["record", "-d", f"lsl://nobody-{uuid.uuid4().hex[:6]}?timeout=0.2", "--duration", "0.5",
                    "-o", str(tmp_path / "x.mcap")])
@@ -180,7 +164,6 @@ def test_no_stream_on_the_command_line_is_one_line(tmp_path, capsys, own_logging
     assert rc != 0 and "no LSL stream with name='nobody-" in err and "Traceback" not in err
 
 
-@needs_lsl
 def test_string_streams_are_refused_clearly():
     name = f"markers-{uuid.uuid4().hex[:6]}"
     outlet = pylsl.StreamOutlet(pylsl.StreamInfo(name, "Markers", 1, 0, "string", f"src-{name}"))
@@ -196,7 +179,6 @@ def test_string_streams_are_refused_clearly():
         del outlet
 
 
-@needs_lsl
 def test_two_streams_answering_one_name_are_an_error_that_lists_them():
     """Two hosts whose devices have the same names publish streams of one name: lsl://NAME refuses to pick
     one at random, lists both, and source_id= chooses."""
@@ -222,7 +204,6 @@ def test_two_streams_answering_one_name_are_an_error_that_lists_them():
         del a, b
 
 
-@needs_lsl
 def test_irregular_int_stream_and_lost_sender(tmp_path):
     """An int16 stream at LSL's irregular rate has no rate; the sender going away and coming back is
     DISCONNECTED then RECONNECTED, like any device."""
@@ -261,7 +242,6 @@ def test_irregular_int_stream_and_lost_sender(tmp_path):
     assert b.values[:, 0].tolist() == list(range(20)) and b.values[:, 1].tolist() == [-i for i in range(20)]
 
 
-@needs_lsl
 def test_perfcap_devices_lists_an_outlet(capsys, own_logging):
     name = f"listed-{uuid.uuid4().hex[:6]}"
     outlet = _outlet(name)
