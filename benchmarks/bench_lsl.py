@@ -18,39 +18,22 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from typing import Any
 
 sys.path.insert(0, os.path.dirname(__file__))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-LSL_CONFIG = """\
-[ports]
-IPv6 = disable
-
-[multicast]
-ResolveScope = link
-KnownPeers = {{127.0.0.1}}
-
-[lab]
-SessionID = {session}
-
-[log]
-level = -1
-"""
-
 CHANNELS = ("seq", "t_handed_ns", "ax", "ay", "az", "gx", "gy")
 
 
 def _lsl_config() -> None:
-    """Discovery kept to the link (multicast no router forwards), in a session of its own, so no other LSL
-    program's streams are seen; the child process inherits the variable."""
-    if "LSLAPICFG" not in os.environ:
-        path = os.path.join(tempfile.mkdtemp(prefix="perfcap-bench-lsl-"), "lsl_api.cfg")
-        with open(path, "w") as f:
-            f.write(LSL_CONFIG.format(session=f"perfcap-bench-{os.getpid()}"))
-        os.environ["LSLAPICFG"] = path
+    """The tests' liblsl configuration (discovery kept to the link, a session of its own, so no other LSL
+    program's streams are seen); the child process inherits ``LSLAPICFG``."""
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))
+    import lsl_helpers
+
+    lsl_helpers.configure()
 
 
 # -- the receiving process -------------------------------------------------------------------------------

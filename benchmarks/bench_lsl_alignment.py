@@ -10,8 +10,8 @@ the same sample (matched by its values, which LSL carries exactly as float64) is
 transport and B's clock fit leave. Also: samples A recorded during B's take that B does not have (lost).
 Baseline in the same run: the same measurement with one device (two streams), the load-free figure.
 
-liblsl's discovery is kept to this link with a session of its own (a generated ``lsl_api.cfg``, as the tests
-do). Measurement script: prints figures and PASS/FAIL per target, always exits 0.
+liblsl's discovery is kept to this link with a session of its own (the tests' ``lsl_api.cfg``,
+``tests/lsl_helpers.py``). Measurement script: prints figures and PASS/FAIL per target, always exits 0.
 """
 
 from __future__ import annotations
@@ -28,17 +28,6 @@ import numpy as np
 from _common import check, header, pct, summary
 
 from capture.session import SessionReader
-
-CFG = """[ports]
-IPv6 = disable
-[multicast]
-ResolveScope = link
-KnownPeers = {{127.0.0.1}}
-[lab]
-SessionID = perfcap-bench-{pid}
-[log]
-level = -2
-"""
 
 
 def run(n: int, seconds: float, tmp: Path, env: dict[str, str]) -> dict[str, float]:
@@ -83,9 +72,11 @@ def main() -> None:
     args = ap.parse_args()
     header(f"bench_lsl_alignment: two perfcap processes over LSL, {2 * args.devices} streams x 200 Hz")
     with tempfile.TemporaryDirectory(prefix="perfcap-bench-lsl-") as tmp:
-        cfg = Path(tmp) / "lsl_api.cfg"
-        cfg.write_text(CFG.format(pid=os.getpid()))
-        env = {k: v for k, v in os.environ.items() if not k.startswith("PERFCAP_")} | {"LSLAPICFG": str(cfg)}
+        sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+        import lsl_helpers  # the tests' liblsl configuration: discovery on this link, a session of its own
+
+        lsl_helpers.configure()
+        env = {k: v for k, v in os.environ.items() if not k.startswith("PERFCAP_")}
         t0 = time.monotonic()
         base = run(1, args.seconds, Path(tmp), env)
         res = run(args.devices, args.seconds, Path(tmp), env)

@@ -48,9 +48,9 @@ class ProtoSchema:
     cls: Any
 
 
-def descriptor_set(file: FileDescriptor) -> bytes:
-    """A ``FileDescriptorSet`` of ``file`` and every file it depends on, dependencies first."""
-    out = descriptor_pb2.FileDescriptorSet()
+def with_dependencies(files: Sequence[FileDescriptor]) -> list[FileDescriptor]:
+    """``files`` and every file they depend on, each once, dependencies first."""
+    out: list[FileDescriptor] = []
     seen: set[str] = set()
 
     def add(fd: FileDescriptor) -> None:
@@ -59,9 +59,18 @@ def descriptor_set(file: FileDescriptor) -> bytes:
         seen.add(fd.name)
         for dep in fd.dependencies:
             add(dep)
-        out.file.add().ParseFromString(fd.serialized_pb)
+        out.append(fd)
 
-    add(file)
+    for f in files:
+        add(f)
+    return out
+
+
+def descriptor_set(file: FileDescriptor) -> bytes:
+    """A ``FileDescriptorSet`` of ``file`` and every file it depends on, dependencies first."""
+    out = descriptor_pb2.FileDescriptorSet()
+    for fd in with_dependencies([file]):
+        out.file.add().ParseFromString(fd.serialized_pb)
     return out.SerializeToString()
 
 
@@ -92,18 +101,8 @@ def build(package: str, file_name: str, messages: Sequence[tuple[str, Sequence[F
                 fp.type_name = "." + f.message
             _doc(fdp, [4, mi, 2, fi], f.doc)
     pool = descriptor_pool.DescriptorPool()
-    done: set[str] = set()
-
-    def add(fd: FileDescriptor) -> None:
-        if fd.name in done:
-            return
-        done.add(fd.name)
-        for dep in fd.dependencies:
-            add(dep)
+    for fd in with_dependencies(deps):
         pool.Add(descriptor_pb2.FileDescriptorProto.FromString(fd.serialized_pb))
-
-    for d in deps:
-        add(d)
     pool.Add(fdp)
     data = descriptor_set(pool.FindFileByName(file_name))
     return {mname: ProtoSchema(f"{package}.{mname}", data,

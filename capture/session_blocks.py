@@ -146,7 +146,7 @@ def decode_samples(stream: str, data: bytes) -> SampleBatch:
     except DecodeError as exc:
         raise ValueError(f"sample block of {stream} does not parse: {exc}") from exc
     n = len(m.seq)
-    seq = _undelta(m.seq, n, f"sample block of {stream}: host times")
+    seq = _undelta(m.seq, n, f"sample block of {stream}: sequence numbers")
     th = _undelta(m.t_host_ns, n, f"sample block of {stream}: host times")
     tb = _undelta(m.t_bus_ns, n, f"sample block of {stream}: bus times")
     td = (_undelta(m.t_device_ns, n, f"sample block of {stream}: device times") if len(m.t_device_ns)
